@@ -1,0 +1,61 @@
+"""Shared fixtures: a short task, synthetic trajectories, and one small collected dataset."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_dalir import keys
+from torchrl_dalir.envs import get_task
+
+# MetaWorld "reach" with an 80-step limit: the expert succeeds in 40-60 steps and a
+# still policy times out, so a dataset with both labels takes seconds to collect.
+SHORT_REACH = dataclasses.replace(get_task("reach"), max_steps=80)
+
+
+class StillPolicy(torch.nn.Module):
+    """Writes a zero action: the arm does not move, the episode times out."""
+
+    def forward(self, td):
+        return td.set(keys.ACTION, torch.zeros(*td.batch_size, 4))
+
+
+def still_policy():
+    return StillPolicy()
+
+
+def synthetic_trajectory(num_actions: int, success: bool, num_points: int = 8, action_dim: int = 2) -> TensorDict:
+    """A trajectory in TorchRL's layout whose action at step t is [t, t] and agent_pos at t is [t]."""
+    t = torch.arange(num_actions, dtype=torch.float32)
+    success_flags = torch.zeros(num_actions, 1, dtype=torch.bool)
+    success_flags[-1] = success
+    done = torch.zeros(num_actions, 1, dtype=torch.bool)
+    done[-1] = True
+    return TensorDict(
+        {
+            keys.POINT_CLOUD: torch.randn(num_actions, num_points, 3),
+            keys.AGENT_POS: t[:, None],
+            keys.ACTION: t[:, None].expand(num_actions, action_dim).clone(),
+            "next": {
+                keys.POINT_CLOUD: torch.randn(num_actions, num_points, 3),
+                keys.AGENT_POS: (t + 1)[:, None],
+                keys.REWARD: torch.ones(num_actions, 1),
+                keys.SUCCESS: success_flags,
+                keys.DONE: done,
+            },
+        },
+        batch_size=[num_actions],
+    )
+
+
+@pytest.fixture(scope="session")
+def collected(tmp_path_factory):
+    """A dataset of SHORT_REACH: 2 expert trajectories, 2 noisy ones, 1 still one (a time-out)."""
+    from torchrl_dalir.data import Source, collect
+
+    root = tmp_path_factory.mktemp("collected") / "reach"
+    sources = [Source("expert", 2), Source("expert_noisy", 2, noise_scale=0.3), Source("still", 1, policy=still_policy, expert=False)]
+    return collect(SHORT_REACH, root, sources, seed=1, gamma=0.9, num_points=64, num_workers=1, chunk_size=2, progress=False)

@@ -1,0 +1,82 @@
+import numpy as np
+import pytest
+import torch
+from torchrl.envs import SerialEnv
+from torchrl.envs.utils import check_env_specs
+
+from conftest import SHORT_REACH
+from torchrl_dalir import TASKS, keys, make_env
+from torchrl_dalir.envs import get_task
+from torchrl_dalir.experts import make_expert
+
+BENCHMARK = ["door", "pen", "disassemble", "shelf-place", "stick-pull", "pick-place-wall"]
+
+
+def test_registry_holds_the_paper_tasks():
+    assert sorted(TASKS) == sorted(BENCHMARK)
+    assert get_task("reach-v3").env_id == "reach-v3"
+
+
+def test_unknown_task_lists_known_tasks():
+    with pytest.raises(KeyError, match="unknown task 'doors'.*disassemble.*reach"):
+        make_env("doors")
+
+
+@pytest.mark.parametrize("task", BENCHMARK)
+def test_specs_and_point_clouds(task):
+    spec = get_task(task)
+    env = make_env(task, seed=0, num_points=256)
+    check_env_specs(env)
+    rollout = env.rollout(3)
+    cloud = rollout[keys.POINT_CLOUD]
+    assert cloud.shape == (3, 256, 3) and cloud.dtype == torch.float32
+    assert torch.isfinite(cloud).all()
+    assert (cloud >= torch.tensor(spec.crop_low)).all() and (cloud <= torch.tensor(spec.crop_high)).all()
+    assert rollout[keys.AGENT_POS].shape == (3, spec.agent_pos_dim)
+    assert rollout["next", keys.SUCCESS].dtype == torch.bool
+    # the cloud is a set of distinct points spread over the workspace, not one repeated point
+    assert len(torch.unique(cloud[0], dim=0)) > 100
+    env.close()
+
+
+@pytest.mark.parametrize("task", ["disassemble", "door"])
+def test_same_seed_same_episode(task):
+    def run(seed):
+        env = make_env(task, seed=seed, num_points=128)
+        actions = torch.linspace(-0.5, 0.5, 5)[:, None].expand(5, env.action_spec.shape[-1])
+        td = env.reset()
+        clouds = [td[keys.POINT_CLOUD]]
+        for action in actions:
+            td = env.step(td.set(keys.ACTION, action.clone()))["next"]
+            clouds.append(td[keys.POINT_CLOUD])
+        env.close()
+        return torch.stack(clouds), td[keys.PRIVILEGED_STATE]
+
+    first, again, other = run(3), run(3), run(4)
+    assert torch.equal(first[0], again[0]) and torch.equal(first[1], again[1])
+    assert not torch.equal(first[1], other[1])
+
+
+def test_episode_terminates_at_first_success():
+    env = make_env(SHORT_REACH, seed=0, render=False)
+    rollout = env.rollout(SHORT_REACH.max_steps, make_expert("reach"), break_when_any_done=True)
+    success = rollout["next", keys.SUCCESS].squeeze(-1)
+    assert success[-1] and not success[:-1].any()
+    assert rollout["next", keys.TERMINATED][-1].item() and len(rollout) < SHORT_REACH.max_steps
+
+
+def test_step_limit_truncates():
+    env = make_env(SHORT_REACH, seed=0, render=False)
+    rollout = env.rollout(100, break_when_any_done=True)  # random actions do not reach the goal
+    assert len(rollout) == SHORT_REACH.max_steps
+    assert rollout["next", keys.TRUNCATED][-1].item()
+
+
+def test_serial_env_of_point_cloud_envs():
+    env = SerialEnv(2, lambda: make_env(SHORT_REACH, seed=None, num_points=64))
+    env.set_seed(0)
+    rollout = env.rollout(4)
+    assert rollout[keys.POINT_CLOUD].shape == (2, 4, 64, 3)
+    # two workers, two different episodes
+    assert not torch.equal(rollout[0, 0][keys.PRIVILEGED_STATE], rollout[1, 0][keys.PRIVILEGED_STATE])
+    env.close()

@@ -1,0 +1,14 @@
+"""torchrl_dalir: DALI-R (data-asymmetric latent imagination and reranking) on TorchRL."""
+
+import os
+
+# Offscreen MuJoCo rendering on the CPU (Mesa EGL); a user's own setting wins.
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+
+from torchrl_dalir import keys  # noqa: E402
+from torchrl_dalir.envs import TASKS, get_task, make_env  # noqa: E402
+
+__version__ = "0.1.0"
+
+__all__ = ["TASKS", "get_task", "keys", "make_env", "__version__"]

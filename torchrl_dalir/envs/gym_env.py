@@ -1,0 +1,103 @@
+"""Gymnasium-level environments: the simulator, seeded per episode, with point-cloud observations.
+
+Everything simulator-specific stays below the TorchRL wrapper: MetaWorld's seeding quirks,
+the success flag's type, the early termination at the first success, and the depth camera.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+from torchrl_dalir import keys
+from torchrl_dalir.envs.point_cloud import DepthPointCloudCamera
+from torchrl_dalir.envs.tasks import METAWORLD, TaskSpec
+
+
+class _MetaWorldSeeding(gym.Wrapper):
+    """Makes ``reset(seed=s)`` reproducible for MetaWorld v3, whose ``reset`` ignores seeds.
+
+    The env is fully randomised (object and goal positions drawn from its own generator at every
+    reset, as DP3 does), rather than cycling through MT1's 50 fixed task variations.
+    """
+
+    def reset(self, *, seed=None, options=None):
+        if seed is not None:
+            self.env.unwrapped.seed(int(seed))
+        return self.env.reset(options=options)
+
+
+def make_simulator(task: TaskSpec) -> gym.Env:
+    """The raw gymnasium env of a task, with its step limit and the privileged state observation."""
+    if task.suite == METAWORLD:
+        import metaworld  # noqa: F401  (registers the MetaWorld envs)
+        from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+        raw = ALL_V3_ENVIRONMENTS[task.env_id]()
+        raw._partially_observable = False  # the goal position is part of the privileged state
+        raw.__dict__.pop("sawyer_observation_space", None)  # cached for the old observability
+        raw._freeze_rand_vec = False
+        raw.seeded_rand_vec = True
+        raw._set_task_called = True
+        env = gym.wrappers.TimeLimit(raw, max_episode_steps=task.max_steps)
+        return _MetaWorldSeeding(env)
+    import gymnasium_robotics
+
+    gym.register_envs(gymnasium_robotics)
+    return gym.make(task.env_id, max_episode_steps=task.max_steps)
+
+
+class PointCloudObservation(gym.Wrapper):
+    """Replaces the observation by ``point_cloud``, ``agent_pos`` and ``privileged_state``.
+
+    ``info["success"]`` becomes a bool and the episode terminates at the first success. The
+    depth camera is created at the first reset, in the process that steps the env. With
+    ``render=False`` there is no point cloud: a state-only env, ~10x faster, for experts.
+    """
+
+    def __init__(self, env: gym.Env, task: TaskSpec, num_points: int = 512, render: bool = True):
+        super().__init__(env)
+        self.task = task
+        self.num_points = num_points
+        self.render_points = render
+        state_dim = env.observation_space.shape[0]
+        unbounded = dict(low=-np.inf, high=np.inf, dtype=np.float32)
+        spaces = {
+            keys.AGENT_POS: gym.spaces.Box(shape=(task.agent_pos_dim,), **unbounded),
+            keys.PRIVILEGED_STATE: gym.spaces.Box(shape=(state_dim,), **unbounded),
+        }
+        if render:
+            spaces[keys.POINT_CLOUD] = gym.spaces.Box(shape=(num_points, 3), **unbounded)
+        self.observation_space = gym.spaces.Dict(spaces)
+        self._camera: DepthPointCloudCamera | None = None
+
+    def _observation(self, state: np.ndarray) -> dict[str, np.ndarray]:
+        raw = self.env.unwrapped
+        observation = {
+            keys.AGENT_POS: np.asarray(self.task.agent_pos(raw, state), dtype=np.float32),
+            keys.PRIVILEGED_STATE: np.asarray(state, dtype=np.float32),
+        }
+        if self.render_points:
+            if self._camera is None:
+                t = self.task
+                self._camera = DepthPointCloudCamera(
+                    raw.model, t.camera, t.crop_low, t.crop_high, self.num_points, t.image_size
+                )
+            observation[keys.POINT_CLOUD] = self._camera(raw.data)
+        return observation
+
+    def reset(self, *, seed=None, options=None):
+        state, _ = self.env.reset(seed=seed, options=options)
+        return self._observation(state), {keys.SUCCESS: np.zeros(1, dtype=bool)}
+
+    def step(self, action):
+        state, reward, terminated, truncated, info = self.env.step(action)
+        success = bool(info.get("success", False))
+        info = {keys.SUCCESS: np.array([success])}
+        return self._observation(state), float(reward), terminated or success, truncated, info
+
+    def close(self):
+        if self._camera is not None:
+            self._camera.close()
+            self._camera = None
+        super().close()

@@ -1,0 +1,34 @@
+"""TensorDict key names, chosen once and used everywhere.
+
+Observation keys are what the environments emit; the dataset keys label each stored step.
+"""
+
+POINT_CLOUD = "point_cloud"  # [..., N, 3] float32, world frame, cropped and farthest-point sampled
+AGENT_POS = "agent_pos"  # [..., D] float32, robot proprioception only
+PRIVILEGED_STATE = "privileged_state"  # [..., S] float32, simulator state for experts; never a model input
+ACTION = "action"  # [..., A] the action executed at this step
+ACTION_CHUNK = "action_chunk"  # [..., H, A] a predicted chunk
+REWARD = "reward"  # [..., 1] the environment's dense reward (kept for the dense-reward oracle ablation)
+SUCCESS = "success"  # [..., 1] bool, the simulator's task-completion flag
+DONE = "done"
+TERMINATED = "terminated"
+TRUNCATED = "truncated"
+IS_INIT = "is_init"  # written by TorchRL's InitTracker at episode starts
+
+# Dataset (one row per observation of a stored trajectory).
+COMPLETION_TARGET = "completion_target"  # [...] float32, y_t = gamma^(T - t) * y_T
+TERMINAL_LABEL = "terminal_label"  # [...] float32, y_T: 1 success, 0 time-out
+TRAJECTORY_ID = "trajectory_id"  # [...] int64, index of the trajectory in its dataset
+STEP = "step"  # [...] int64, t, the index of the observation in its trajectory (0..T)
+IS_FINAL = "is_final"  # [...] bool, the row holds s_T, the observation after the last action
+QUALITY = "quality"  # [...] int64, index into QUALITY_TAGS
+SOURCE = "source"  # [...] int64, index into the dataset's list of sources
+NOISE_SCALE = "noise_scale"  # [...] float32, drift-noise scale of the policy that acted
+
+QUALITY_TAGS = ("expert", "imperfect_success", "failed")
+
+# Training windows.
+OBS_MASK = "obs_is_pad"  # [..., To] bool, observation-history steps padded before the episode start
+ACTION_MASK = "action_is_pad"  # [..., H] bool, chunk steps padded past the episode's last action
+FUTURE = "future"  # sub-tensordict: the observation k steps ahead (the world model's target)
+FUTURE_MASK = "future_is_pad"  # [...] bool, the episode ended before t + k: the final observation stands in
