@@ -31,7 +31,7 @@ def describe(name: str, dataset: TrajectoryDataset, seconds: float) -> None:
 
 
 def main(argv: list[str]) -> None:
-    cfg = parse_config(CollectionConfig, PRESETS, argv)
+    cfg = parse_config(CollectionConfig, argv, PRESETS)
     common = dict(gamma=cfg.gamma, num_points=cfg.num_points, num_workers=cfg.num_workers, chunk_size=cfg.chunk_size, progress=cfg.progress)
     if cfg.stage in ("demos", "all"):
         start = time.perf_counter()

@@ -13,8 +13,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from omegaconf import OmegaConf
-
+from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.evaluation import evaluate
 from torchrl_dalir.experts import add_drift_noise, make_expert
 from torchrl_dalir.utils import atomic_write_text
@@ -31,7 +30,7 @@ class Config:
 
 
 def main(argv: list[str]) -> None:
-    cfg: Config = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.from_cli(argv)))
+    cfg: Config = parse_config(Config, argv)
     rows = []
     for task in cfg.tasks:
         for scale in cfg.noise_scales:
@@ -42,7 +41,7 @@ def main(argv: list[str]) -> None:
             rows.append({"task": task, "noise_scale": scale, "success_rate": result.success_rate, "episodes": cfg.episodes})
             print(f"{task:18s} noise {scale:5.2f}  success {result.success_rate:6.1%}  ({cfg.episodes} episodes)", flush=True)
     out = Path(cfg.out)
-    atomic_write_text(out / "experts.json", json.dumps({"config": OmegaConf.to_container(OmegaConf.structured(cfg)), "rows": rows}, indent=2))
+    atomic_write_text(out / "experts.json", json.dumps({"config": config_dict(cfg), "rows": rows}, indent=2))
 
 
 if __name__ == "__main__":

@@ -11,9 +11,8 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass, field
 
-from omegaconf import OmegaConf
-
 from torchrl_dalir import keys, make_env
+from torchrl_dalir.config import parse_config
 from torchrl_dalir.envs import get_task
 from torchrl_dalir.envs.tasks import ADROIT
 from torchrl_dalir.evaluation.plots import plot_point_cloud
@@ -29,7 +28,7 @@ class Config:
 
 
 def main(argv: list[str]) -> None:
-    cfg: Config = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.from_dotlist(argv)))
+    cfg: Config = parse_config(Config, argv)
     for task in cfg.tasks:
         spec = get_task(task)
         env = make_env(task, seed=cfg.seed)

@@ -2,8 +2,8 @@ import json
 
 import pytest
 import torch
-
 from conftest import SHORT_REACH, still_policy
+
 from torchrl_dalir import keys
 from torchrl_dalir.data import DatasetWriter, Source, TrajectoryDataset, collect
 from torchrl_dalir.data.storage import DatasetMeta
@@ -91,6 +91,7 @@ def test_interrupted_collection_resumes_to_the_same_data(tmp_path, monkeypatch):
 
 def test_writer_finalizes_in_chunk_order(tmp_path):
     from conftest import synthetic_trajectory
+
     from torchrl_dalir.data import trajectory_rows
 
     meta = DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[])
@@ -102,3 +103,12 @@ def test_writer_finalizes_in_chunk_order(tmp_path):
     assert dataset.lengths.tolist() == [4, 5]
     assert dataset.rows[keys.TRAJECTORY_ID].tolist() == [0] * 4 + [1] * 5
     assert not (tmp_path / "shards").exists()
+
+
+def test_two_worker_collection_seeds_workers_apart(tmp_path):
+    """Each collector worker seeds its env and its noise differently: no duplicate episodes."""
+    sources = [Source("expert_noisy", 4, noise_scale=0.2)]
+    dataset = collect(SHORT_REACH, tmp_path, sources, seed=3, num_points=32, num_workers=2, chunk_size=4, progress=False)
+    assert dataset.num_trajectories == 4
+    first_states = dataset.rows[keys.PRIVILEGED_STATE][dataset.starts]
+    assert len(torch.unique(first_states, dim=0)) == 4

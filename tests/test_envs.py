@@ -1,10 +1,11 @@
-import numpy as np
+from functools import partial
+
 import pytest
 import torch
-from torchrl.envs import SerialEnv
+from conftest import SHORT_REACH
+from torchrl.envs import ParallelEnv, SerialEnv
 from torchrl.envs.utils import check_env_specs
 
-from conftest import SHORT_REACH
 from torchrl_dalir import TASKS, keys, make_env
 from torchrl_dalir.envs import get_task
 from torchrl_dalir.experts import make_expert
@@ -79,4 +80,13 @@ def test_serial_env_of_point_cloud_envs():
     assert rollout[keys.POINT_CLOUD].shape == (2, 4, 64, 3)
     # two workers, two different episodes
     assert not torch.equal(rollout[0, 0][keys.PRIVILEGED_STATE], rollout[1, 0][keys.PRIVILEGED_STATE])
+    env.close()
+
+
+def test_parallel_env_of_point_cloud_envs():
+    env = ParallelEnv(2, partial(make_env, SHORT_REACH, seed=None, num_points=64))
+    env.set_seed(0)
+    rollout = env.rollout(3)
+    assert rollout[keys.POINT_CLOUD].shape == (2, 3, 64, 3)
+    assert torch.isfinite(rollout[keys.POINT_CLOUD]).all()
     env.close()

@@ -1,7 +1,7 @@
 import pytest
 import torch
-
 from conftest import synthetic_trajectory
+
 from torchrl_dalir import keys
 from torchrl_dalir.data import completion_targets, quality_tag, trajectory_rows
 

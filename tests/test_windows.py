@@ -1,6 +1,6 @@
 import torch
-
 from conftest import synthetic_trajectory
+
 from torchrl_dalir import keys
 from torchrl_dalir.data import DatasetWriter, trajectory_rows
 from torchrl_dalir.data.storage import DatasetMeta

@@ -14,15 +14,18 @@ from omegaconf import OmegaConf
 C = TypeVar("C")
 
 
-def parse_config(config_class: type[C], presets: dict[str, dict], argv: list[str]) -> C:
-    """Builds ``config_class`` from its defaults, then ``presets[preset]``, then ``argv``."""
+def parse_config(config_class: type[C], argv: list[str], presets: dict[str, dict] | None = None) -> C:
+    """Builds ``config_class`` from its defaults, then ``presets[preset]`` (if the job has
+    presets), then the ``key=value`` overrides of ``argv``."""
     cli = OmegaConf.from_dotlist(argv)
     base = OmegaConf.structured(config_class)
-    preset = cli.get("preset", base.get("preset"))
-    if preset not in presets:
-        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(presets)}")
-    merged = OmegaConf.merge(base, presets[preset], cli)
-    return OmegaConf.to_object(merged)
+    layers = [base]
+    if presets is not None:
+        preset = cli.get("preset", base.get("preset"))
+        if preset not in presets:
+            raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(presets)}")
+        layers.append(presets[preset])
+    return OmegaConf.to_object(OmegaConf.merge(*layers, cli))
 
 
 def config_dict(config) -> dict:
