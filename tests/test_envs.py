@@ -90,3 +90,14 @@ def test_parallel_env_of_point_cloud_envs():
     assert rollout[keys.POINT_CLOUD].shape == (2, 3, 64, 3)
     assert torch.isfinite(rollout[keys.POINT_CLOUD]).all()
     env.close()
+
+
+def test_history_stacks_observations():
+    env = make_env(SHORT_REACH, seed=0, num_points=32, history=2)
+    check_env_specs(env)
+    rollout = env.rollout(3)
+    assert rollout[keys.POINT_CLOUD].shape == (3, 2, 32, 3) and rollout[keys.AGENT_POS].shape == (3, 2, 4)
+    # at the reset both frames are the first observation; afterwards the older one is the previous step
+    assert torch.equal(rollout[keys.AGENT_POS][0, 0], rollout[keys.AGENT_POS][0, 1])
+    assert torch.equal(rollout[keys.AGENT_POS][1, 0], rollout[keys.AGENT_POS][0, 1])
+    assert torch.equal(rollout[keys.POINT_CLOUD][2, 0], rollout[keys.POINT_CLOUD][1, 1])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 from torchrl.data import Categorical, Composite
-from torchrl.envs import EnvBase, GymWrapper, InitTracker, TransformedEnv
+from torchrl.envs import CatFrames, EnvBase, GymWrapper, InitTracker, TransformedEnv, UnsqueezeTransform
 from torchrl.envs.gym_like import default_info_dict_reader
 
 from torchrl_dalir import keys
@@ -18,6 +18,7 @@ def make_env(
     seed: int | None = 0,
     num_points: int = 512,
     render: bool = True,
+    history: int = 1,
     device: str | torch.device = "cpu",
 ) -> EnvBase:
     """Builds a TorchRL env for a benchmark task (``door``, ``pen``, ``disassemble``, ...).
@@ -34,6 +35,9 @@ def make_env(
             the env unseeded.
         num_points: points per cloud after farthest-point sampling.
         render: ``False`` gives a state-only env without ``point_cloud`` (for experts; ~10x faster).
+        history: with ``history > 1``, ``point_cloud`` and ``agent_pos`` carry the last
+            ``history`` observations (``[history, N, 3]``, ``[history, D]``), stacked by TorchRL's
+            ``CatFrames`` (the first observation repeats at an episode start, as DP3 pads).
         device: where the env's tensors live.
 
     Example:
@@ -48,6 +52,11 @@ def make_env(
     success_spec = Composite({keys.SUCCESS: Categorical(2, shape=(1,), dtype=torch.bool, device=device)})
     env.set_info_dict_reader(default_info_dict_reader([keys.SUCCESS], spec=success_spec))
     env = TransformedEnv(env, InitTracker())
+    if history > 1:
+        stacked = [(keys.AGENT_POS, -2)] + ([(keys.POINT_CLOUD, -3)] if render else [])
+        for key, dim in stacked:
+            env.append_transform(UnsqueezeTransform(dim=dim, in_keys=[key]))
+            env.append_transform(CatFrames(N=history, dim=dim, in_keys=[key]))
     if seed is not None:
         env.set_seed(seed)
     return env

@@ -10,6 +10,8 @@ points. Farthest-point sampling uses ``fpsample`` (a C++ bucket FPS): numpy or t
 from __future__ import annotations
 
 import atexit
+import importlib
+import os
 import weakref
 
 import fpsample
@@ -22,6 +24,17 @@ _OPEN_CAMERAS: weakref.WeakSet = weakref.WeakSet()
 def _close_open_cameras() -> None:
     for camera in list(_OPEN_CAMERAS):
         camera.close()
+
+
+def _apply_requested_gl_backend() -> None:
+    """MuJoCo picks its GL backend once, when first imported (TorchRL imports it early); if
+    ``MUJOCO_GL`` asks for a headless backend that was not picked, switch to it now."""
+    from mujoco import gl_context
+
+    backend = os.environ.get("MUJOCO_GL", "").lower().strip()
+    if backend in ("egl", "osmesa"):
+        module = importlib.import_module(f"mujoco.{backend}")
+        gl_context.GLContext = module.GLContext
 
 
 def _track(camera) -> None:
@@ -65,12 +78,12 @@ class DepthPointCloudCamera:
         self.crop_high = np.asarray(crop_high, dtype=np.float32)
         self.num_points = num_points
         try:
+            _apply_requested_gl_backend()
             self.renderer = mujoco.Renderer(model, image_size, image_size)
         except Exception as error:
             raise RuntimeError(
-                "MuJoCo could not create an offscreen renderer. Set MUJOCO_GL=egl (and install the Debian "
-                "packages libegl1 and libgl1-mesa-dri) before anything imports mujoco; importing "
-                "torchrl_dalir first sets it for you."
+                "MuJoCo could not create an offscreen renderer. With MUJOCO_GL=egl (the default that "
+                "torchrl_dalir sets) install the Debian packages libegl1 and libgl1-mesa-dri."
             ) from error
         self.renderer.enable_depth_rendering()
         _track(self)

@@ -1,0 +1,19 @@
+"""Networks: observation encoders, the conditional U-Net, and the base 3D policies."""
+
+from torchrl_dalir.modules.config import PolicyConfig
+from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
+from torchrl_dalir.modules.normalizer import MinMaxNormalizer
+from torchrl_dalir.modules.policies import ChunkPolicy3D, DiffusionPolicy3D, FlowMatchingPolicy3D, make_policy
+from torchrl_dalir.modules.unet import ConditionalUnet1D
+
+__all__ = [
+    "ChunkPolicy3D",
+    "ConditionalUnet1D",
+    "DiffusionPolicy3D",
+    "FlowMatchingPolicy3D",
+    "MinMaxNormalizer",
+    "PointCloudEncoder",
+    "PolicyConfig",
+    "StateEncoder",
+    "make_policy",
+]

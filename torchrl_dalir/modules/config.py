@@ -1,0 +1,46 @@
+"""Configuration of the base 3D policies (DP3 diffusion and 3D flow matching)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class PolicyConfig:
+    """Architecture and sampler of a base policy. Defaults are DP3's (the ``paper`` preset).
+
+    Args:
+        kind: ``"dp"`` (DDIM diffusion, clean-sample prediction) or ``"fm"`` (linear-path flow
+            matching, Euler integration).
+        horizon: predicted chunk length ``H``; the chunk starts at the oldest observation step.
+        obs_steps: observation-history length ``To``.
+        action_steps: actions executed per decision, starting at chunk index ``To - 1``.
+        point_hidden, point_out: per-point MLP widths and pooled feature size.
+        state_out: robot-state feature size.
+        down_dims, kernel_size, groups, step_embed_dim: the conditional U-Net.
+        train_timesteps: diffusion steps in training (also the time scale of the FM embedding).
+        inference_steps: DDIM steps (``dp``) or Euler steps, i.e. network evaluations (``fm``).
+        beta_schedule, clip_sample: DDIM noise schedule and clipping of the predicted sample.
+    """
+
+    kind: str = "fm"
+    horizon: int = 16
+    obs_steps: int = 2
+    action_steps: int = 8
+    point_hidden: list[int] = field(default_factory=lambda: [64, 128, 256])
+    point_out: int = 64
+    state_out: int = 64
+    down_dims: list[int] = field(default_factory=lambda: [512, 1024, 2048])
+    kernel_size: int = 5
+    groups: int = 8
+    step_embed_dim: int = 128
+    train_timesteps: int = 100
+    inference_steps: int = 10
+    beta_schedule: str = "squaredcos_cap_v2"
+    clip_sample: bool = True
+
+    def __post_init__(self):
+        if self.kind not in ("dp", "fm"):
+            raise ValueError(f"policy kind must be 'dp' or 'fm', got {self.kind!r}")
+        if self.obs_steps - 1 + self.action_steps > self.horizon:
+            raise ValueError("obs_steps - 1 + action_steps must not exceed the horizon")

@@ -1,0 +1,64 @@
+"""DP3's observation encoders: a per-point MLP with max-pooling, and a robot-state MLP.
+
+The point encoder keeps per-point features and pooling apart: point dropout is a mask on the
+pooling, so many dropout masks can share one pass of the per-point MLP (the reranker's trick).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+def _mlp(sizes: list[int], layer_norm: bool) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for n_in, n_out in zip(sizes[:-1], sizes[1:]):
+        layers.append(nn.Linear(n_in, n_out))
+        if layer_norm:
+            layers.append(nn.LayerNorm(n_out))
+        layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class PointCloudEncoder(nn.Module):
+    """Per-point MLP (Linear, LayerNorm, ReLU per layer), max over points, projection.
+
+    Args:
+        hidden: per-point layer widths (DP3: 64, 128, 256).
+        out_dim: size of the pooled, projected feature (DP3: 64).
+    """
+
+    def __init__(self, hidden: tuple[int, ...] = (64, 128, 256), out_dim: int = 64):
+        super().__init__()
+        self.point_mlp = _mlp([3, *hidden], layer_norm=True)
+        self.projection = nn.Sequential(nn.Linear(hidden[-1], out_dim), nn.LayerNorm(out_dim))
+        self.out_dim = out_dim
+
+    def point_features(self, cloud: torch.Tensor) -> torch.Tensor:
+        """``[..., N, 3]`` -> ``[..., N, C]``."""
+        if cloud.shape[-1] != 3:
+            raise ValueError(f"point clouds must be [..., N, 3], got {tuple(cloud.shape)}")
+        return self.point_mlp(cloud)
+
+    def pool(self, features: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+        """Max over points, only over the points where ``keep`` (``[..., N]`` bool) is set, then projects."""
+        if keep is not None:
+            features = features.masked_fill(~keep.unsqueeze(-1), float("-inf"))
+        return self.projection(features.max(dim=-2).values)
+
+    def forward(self, cloud: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+        return self.pool(self.point_features(cloud), keep)
+
+
+class StateEncoder(nn.Module):
+    """Robot-state MLP: D -> 64 -> ReLU -> 64 (DP3)."""
+
+    def __init__(self, state_dim: int, hidden: int = 64, out_dim: int = 64):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(state_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim))
+        self.state_dim, self.out_dim = state_dim, out_dim
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        if state.shape[-1] != self.state_dim:
+            raise ValueError(f"agent_pos must have {self.state_dim} entries, got {tuple(state.shape)}")
+        return self.net(state)

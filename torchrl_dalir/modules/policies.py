@@ -1,0 +1,167 @@
+"""The base 3D policies: DP3-style diffusion and 3D flow matching over action chunks.
+
+Both read a 2-step history of ``point_cloud`` ``[..., To, N, 3]`` and ``agent_pos``
+``[..., To, D]`` and write ``action_chunk`` ``[..., H, A]``; they differ only in how a chunk is
+generated from noise (:meth:`ChunkPolicy3D.generate`). Inputs and outputs are in the env's
+units; min-max normalizers fitted on the demos live inside the module and are saved with it.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from torchrl_dalir import keys
+from torchrl_dalir.modules.config import PolicyConfig
+from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
+from torchrl_dalir.modules.normalizer import MinMaxNormalizer
+from torchrl_dalir.modules.unet import ConditionalUnet1D
+
+
+class ChunkPolicy3D(TensorDictModuleBase):
+    """Shared body: normalizers, observation encoders and the conditional U-Net.
+
+    Args:
+        config: the architecture.
+        action_dim: ``A``.
+        state_dim: ``D``, the size of ``agent_pos``.
+    """
+
+    in_keys = [keys.POINT_CLOUD, keys.AGENT_POS]
+    out_keys = [keys.ACTION_CHUNK]
+
+    def __init__(self, config: PolicyConfig, action_dim: int, state_dim: int):
+        super().__init__()
+        self.config = config
+        self.action_dim, self.state_dim = action_dim, state_dim
+        self.point_normalizer = MinMaxNormalizer(3)
+        self.state_normalizer = MinMaxNormalizer(state_dim)
+        self.action_normalizer = MinMaxNormalizer(action_dim)
+        self.point_encoder = PointCloudEncoder(tuple(config.point_hidden), config.point_out)
+        self.state_encoder = StateEncoder(state_dim, out_dim=config.state_out)
+        self.cond_dim = config.obs_steps * (config.point_out + config.state_out)
+        self.unet = ConditionalUnet1D(
+            action_dim, self.cond_dim, tuple(config.down_dims), config.kernel_size, config.groups, config.step_embed_dim
+        )
+
+    # -- normalisation ---------------------------------------------------------------------
+    def fit_normalizers(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor, action: torch.Tensor) -> None:
+        """Fits the three normalizers on demo data (any leading shape)."""
+        self.point_normalizer.fit(point_cloud)
+        self.state_normalizer.fit(agent_pos)
+        self.action_normalizer.fit(action)
+
+    # -- observation -> condition ------------------------------------------------------------
+    def _check_observation(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> None:
+        to = self.config.obs_steps
+        if point_cloud.dim() < 4 or point_cloud.shape[-3] != to or point_cloud.shape[-1] != 3:
+            raise ValueError(
+                f"point_cloud must be [..., {to}, N, 3] (a {to}-step history; stack it with "
+                f"torchrl_dalir.envs.make_env(..., history={to})), got {tuple(point_cloud.shape)}"
+            )
+        if agent_pos.shape[-2:] != (to, self.state_dim):
+            raise ValueError(f"agent_pos must be [..., {to}, {self.state_dim}], got {tuple(agent_pos.shape)}")
+        if not (torch.isfinite(point_cloud).all() and torch.isfinite(agent_pos).all()):
+            raise ValueError("the observation contains NaN or infinite values")
+
+    def point_features(self, point_cloud: torch.Tensor) -> torch.Tensor:
+        """Per-point features of normalised clouds ``[..., To, N, 3]`` -> ``[..., To, N, C]``."""
+        return self.point_encoder.point_features(self.point_normalizer(point_cloud))
+
+    def condition(self, features: torch.Tensor, agent_pos: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+        """Pools per-point features (under an optional keep mask ``[..., To, N]``) and appends the
+        state features: the U-Net's condition ``[..., To * (point_out + state_out)]``."""
+        pooled = self.point_encoder.pool(features, keep)
+        state = self.state_encoder(self.state_normalizer(agent_pos))
+        return torch.cat([pooled, state], dim=-1).flatten(-2)
+
+    def encode(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+        self._check_observation(point_cloud, agent_pos)
+        return self.condition(self.point_features(point_cloud), agent_pos, keep)
+
+    # -- condition -> chunk --------------------------------------------------------------------
+    def generate(self, cond: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """Turns noise ``[B, H, A]`` into a normalised chunk, conditioned on ``cond`` ``[B, C]``."""
+        raise NotImplementedError
+
+    def sample(self, cond: torch.Tensor, generator: torch.Generator | None = None, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """Chunks ``[..., H, A]`` in env units, one per condition ``[..., C]``; batch many
+        conditions (e.g. 32 candidates) into one call."""
+        batch_shape = cond.shape[:-1]
+        flat = cond.reshape(-1, cond.shape[-1])
+        shape = (flat.shape[0], self.config.horizon, self.action_dim)
+        if noise is None:
+            noise = torch.randn(shape, generator=generator, device=cond.device if generator is None else generator.device)
+            noise = noise.to(cond.device)
+        elif noise.reshape(shape).shape != shape:
+            raise ValueError(f"noise must hold {shape} values")
+        chunk = self.generate(flat, noise.reshape(shape).to(cond.dtype))
+        return self.action_normalizer.unnormalize(chunk).reshape(*batch_shape, *shape[1:])
+
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase, generator: torch.Generator | None = None) -> TensorDictBase:
+        cond = self.encode(tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS))
+        return tensordict.set(keys.ACTION_CHUNK, self.sample(cond, generator))
+
+
+class DiffusionPolicy3D(ChunkPolicy3D):
+    """DP3: DDIM over action chunks; the network predicts the clean chunk, which is clipped.
+
+    Example:
+        >>> from torchrl_dalir.modules import PolicyConfig
+        >>> policy = DiffusionPolicy3D(PolicyConfig(kind="dp", down_dims=[32, 64, 128]), action_dim=4, state_dim=4)
+        >>> cond = policy.encode(torch.rand(3, 2, 64, 3), torch.rand(3, 2, 4))
+        >>> policy.sample(cond).shape
+        torch.Size([3, 16, 4])
+    """
+
+    def __init__(self, config: PolicyConfig, action_dim: int, state_dim: int):
+        super().__init__(config, action_dim, state_dim)
+        from diffusers import DDIMScheduler
+
+        self.scheduler = DDIMScheduler(
+            num_train_timesteps=config.train_timesteps,
+            beta_schedule=config.beta_schedule,
+            clip_sample=config.clip_sample,
+            prediction_type="sample",
+            set_alpha_to_one=True,
+            steps_offset=0,
+        )
+
+    def generate(self, cond: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        self.scheduler.set_timesteps(self.config.inference_steps)
+        x = noise
+        for t in self.scheduler.timesteps:
+            step = t.to(cond.device).expand(cond.shape[0])
+            x = self.scheduler.step(self.unet(x, step, cond), t, x).prev_sample
+        return x
+
+
+class FlowMatchingPolicy3D(ChunkPolicy3D):
+    """3D flow matching: a velocity field along the straight path from noise (t=0) to the chunk
+    (t=1), integrated with ``inference_steps`` Euler steps (network evaluations).
+
+    Example:
+        >>> from torchrl_dalir.modules import PolicyConfig
+        >>> policy = FlowMatchingPolicy3D(PolicyConfig(kind="fm", down_dims=[32, 64, 128], inference_steps=1), 4, 4)
+        >>> policy.sample(policy.encode(torch.rand(3, 2, 64, 3), torch.rand(3, 2, 4))).shape
+        torch.Size([3, 16, 4])
+    """
+
+    def velocity(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """The velocity at path time ``t`` ``[B]`` in [0, 1] (embedded like a diffusion step)."""
+        return self.unet(x, t * self.config.train_timesteps, cond)
+
+    def generate(self, cond: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        steps = self.config.inference_steps
+        x = noise
+        for k in range(steps):
+            t = torch.full((cond.shape[0],), k / steps, device=cond.device)
+            x = x + self.velocity(x, t, cond) / steps
+        return x
+
+
+def make_policy(config: PolicyConfig, action_dim: int, state_dim: int) -> ChunkPolicy3D:
+    """The policy class that ``config.kind`` names."""
+    return {"dp": DiffusionPolicy3D, "fm": FlowMatchingPolicy3D}[config.kind](config, action_dim, state_dim)
