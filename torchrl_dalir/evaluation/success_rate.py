@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from functools import partial
 
 import torch
+from torchrl.envs import SerialEnv
 from tqdm.auto import tqdm
 
 from torchrl_dalir import keys
@@ -47,10 +49,11 @@ def evaluate(policy, task: str, num_episodes: int, seed: int = 0, *, env=None, p
         task: the task name.
         num_episodes: how many episodes.
         seed: the evaluation seed.
-        env: an env to reuse (built with ``make_env(task, **env_kwargs)`` otherwise).
+        env: a batched env of size 1 to reuse (by default ``SerialEnv(1, make_env(task, **env_kwargs))``;
+            batched because TorchRL's receding-horizon wrapper needs a batch dimension).
         progress: show a progress bar.
     """
-    env = env if env is not None else make_env(task, seed=None, **env_kwargs)
+    env = env if env is not None else SerialEnv(1, partial(make_env, task, seed=None, **env_kwargs))
     max_steps = get_task(task).max_steps
     records = []
     for episode in tqdm(range(num_episodes), desc=f"evaluate {task}", disable=not progress, leave=False):
