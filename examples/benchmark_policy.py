@@ -1,0 +1,102 @@
+"""Inference latency and candidate diversity of trained base policies.
+
+    python examples/benchmark_policy.py checkpoints=[outputs/policies/disassemble/fm_seed0/checkpoint.pt] nfe=[1,10]
+
+Latency: milliseconds per decision (median of ``repeats`` after ``warmup``), batch 1 and a batch
+of ``candidates`` chunks from one observation, split into the encoder (per-point MLP, pooling,
+state MLP) and the generator (DDIM or Euler steps). Diversity: mean pairwise L2 distance between
+``candidates`` chunks from one demo observation, when only the noise is re-sampled, under point
+dropout with fresh noise, and under point dropout with the same noise.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from torchrl_dalir import keys
+from torchrl_dalir.config import parse_config
+from torchrl_dalir.data import TrajectoryDataset
+from torchrl_dalir.data.windows import TrajectoryWindows
+from torchrl_dalir.training import load_policy
+from torchrl_dalir.utils import atomic_write_text
+
+
+@dataclass
+class Config:
+    checkpoints: list[str] = field(default_factory=list)
+    data: str = "outputs/data"  # a demo observation comes from <data>/<task>/demos
+    nfe: list[int] = field(default_factory=lambda: [1, 10])  # FM Euler steps to time (DP keeps its DDIM steps)
+    candidates: int = 32
+    dropout: float = 0.2
+    warmup: int = 5
+    repeats: int = 30
+    threads: int = 2
+    seed: int = 0
+    out: str = "outputs/benchmarks/policy.json"
+
+
+def median_ms(fn, warmup: int, repeats: int) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1000 * statistics.median(times)
+
+
+def mean_pairwise_distance(chunks: torch.Tensor) -> float:
+    flat = chunks.reshape(chunks.shape[0], -1)
+    d = torch.cdist(flat, flat)
+    n = flat.shape[0]
+    return (d.sum() / (n * (n - 1))).item()
+
+
+@torch.no_grad()
+def main(argv: list[str]) -> None:
+    cfg = parse_config(Config, argv)
+    torch.set_num_threads(cfg.threads)
+    rows = []
+    for path in cfg.checkpoints:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        demos = TrajectoryDataset.load(Path(cfg.data) / state["task"] / "demos", task=state["task"])
+        policy = load_policy(path)
+        window = TrajectoryWindows(demos, policy.config.obs_steps, policy.config.horizon)[[len(demos.rows) // 3]]
+        cloud, agent_pos = window[keys.POINT_CLOUD], window[keys.AGENT_POS]  # [1, To, N, 3], [1, To, D]
+        steps_to_time = cfg.nfe if policy.config.kind == "fm" else [policy.config.inference_steps]
+        for steps in steps_to_time:
+            policy.config.inference_steps = steps
+            g = torch.Generator().manual_seed(cfg.seed)
+            n = cfg.candidates
+            cond1 = policy.encode(cloud, agent_pos)
+            row = {
+                "checkpoint": path, "kind": policy.config.kind, "inference_steps": steps,
+                "encoder_ms_batch1": median_ms(lambda: policy.encode(cloud, agent_pos), cfg.warmup, cfg.repeats),
+                "generator_ms_batch1": median_ms(lambda: policy.sample(cond1, g), cfg.warmup, cfg.repeats),
+                "decision_ms_batch1": median_ms(lambda: policy.sample(policy.encode(cloud, agent_pos), g), cfg.warmup, cfg.repeats),
+                f"generator_ms_batch{n}": median_ms(lambda: policy.sample(cond1.expand(n, -1), g), cfg.warmup, cfg.repeats),
+            }
+            # Diversity of n chunks from one observation.
+            keep = torch.rand(n, *cloud.shape[1:3], generator=g) >= cfg.dropout
+            keep[0] = True  # the clean observation is always one candidate
+            features = policy.point_features(cloud)
+            dropped = policy.condition(features.expand(n, -1, -1, -1), agent_pos.expand(n, -1, -1), keep)
+            same_noise = torch.randn(1, policy.config.horizon, policy.action_dim, generator=g).expand(n, -1, -1)
+            row["diversity_noise_only"] = mean_pairwise_distance(policy.sample(cond1.expand(n, -1), g))
+            row["diversity_dropout_fresh_noise"] = mean_pairwise_distance(policy.sample(dropped, g))
+            row["diversity_dropout_same_noise"] = mean_pairwise_distance(policy.sample(dropped, noise=same_noise))
+            rows.append(row)
+            print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
+    atomic_write_text(cfg.out, json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
