@@ -11,4 +11,22 @@ from torchrl_dalir.envs import TASKS, get_task, make_env  # noqa: E402
 
 __version__ = "0.1.0"
 
-__all__ = ["TASKS", "get_task", "keys", "make_env", "__version__"]
+from torchrl_dalir.modules import DiffusionPolicy3D, FlowMatchingPolicy3D, LatentWorldModel, TaskCompletionScorer  # noqa: E402
+from torchrl_dalir.modules.receding_horizon import receding_horizon  # noqa: E402
+from torchrl_dalir.reranking import GaussianObservationNoise, PointDropout, RerankingActor  # noqa: E402
+
+__all__ = [
+    "TASKS",
+    "DiffusionPolicy3D",
+    "FlowMatchingPolicy3D",
+    "GaussianObservationNoise",
+    "LatentWorldModel",
+    "PointDropout",
+    "RerankingActor",
+    "TaskCompletionScorer",
+    "__version__",
+    "get_task",
+    "keys",
+    "make_env",
+    "receding_horizon",
+]

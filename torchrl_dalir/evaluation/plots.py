@@ -41,3 +41,33 @@ def plot_point_cloud(cloud, path: str | Path, title: str = "", crop_low=None, cr
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def plot_imagination_diagnostics(curves: list[dict], path: str | Path, title: str = "") -> Path:
+    """The paper's Fig. 2 for held-out trajectories: (left) scorer output against Monte-Carlo
+    targets, (right) scores of imagined against true future latents. ``curves`` holds one dict
+    per trajectory with ``label`` (1/0), ``step``, ``target``, ``score``, ``future_step``,
+    ``imagined_score`` and ``true_future_score``."""
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8), dpi=80)
+    colors = {1: "tab:blue", 0: "tab:orange"}
+    for curve in curves:
+        color = colors[int(curve["label"])]
+        name = "success" if curve["label"] else "failure"
+        left.plot(curve["step"], curve["target"], "--", color=color, alpha=0.8, label=f"MC target ({name})")
+        left.plot(curve["step"], curve["score"], "-", color=color, label=f"scorer ({name})")
+        right.plot(curve["future_step"], curve["true_future_score"], "--", color=color, alpha=0.8, label=f"true future latent ({name})")
+        right.plot(curve["future_step"], curve["imagined_score"], "-", color=color, label=f"imagined latent ({name})")
+    left.set_title("task-completion scorer")
+    right.set_title("world model: imagined vs true future")
+    for ax in (left, right):
+        ax.set_xlabel("step")
+        ax.set_ylim(-0.05, 1.05)
+        ax.legend(fontsize=7)
+    left.set_ylabel("completion probability")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -5,15 +5,19 @@ from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 from torchrl_dalir.modules.policies import ChunkPolicy3D, DiffusionPolicy3D, FlowMatchingPolicy3D, make_policy
 from torchrl_dalir.modules.unet import ConditionalUnet1D
+from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, TaskCompletionScorer
 
 __all__ = [
     "ChunkPolicy3D",
     "ConditionalUnet1D",
     "DiffusionPolicy3D",
     "FlowMatchingPolicy3D",
+    "LatentEncoder",
+    "LatentWorldModel",
     "MinMaxNormalizer",
     "PointCloudEncoder",
     "PolicyConfig",
     "StateEncoder",
+    "TaskCompletionScorer",
     "make_policy",
 ]

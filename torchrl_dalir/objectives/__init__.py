@@ -2,5 +2,7 @@
 
 from torchrl_dalir.objectives.diffusion import DiffusionLoss
 from torchrl_dalir.objectives.flow_matching import FlowMatchingLoss
+from torchrl_dalir.objectives.latent_dynamics import LatentDynamicsLoss
+from torchrl_dalir.objectives.task_completion import TaskCompletionLoss
 
-__all__ = ["DiffusionLoss", "FlowMatchingLoss"]
+__all__ = ["DiffusionLoss", "FlowMatchingLoss", "LatentDynamicsLoss", "TaskCompletionLoss"]

@@ -139,4 +139,14 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", task: str 
     policy = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])
     policy.load_state_dict(state["policy_state"])
     policy.num_points = state["num_points"]  # the cloud size it was trained on
+    policy.task = state["task"]
     return policy.to(device).eval()
+
+
+def policy_actor(path: str | Path, device: str = "cpu"):
+    """A trained policy as a receding-horizon TorchRL actor (picklable as a ``functools.partial``
+    of this function, e.g. as a collection :class:`~torchrl_dalir.data.Source`'s policy)."""
+    from torchrl_dalir.modules.receding_horizon import receding_horizon
+
+    policy = load_policy(path, device)
+    return receding_horizon(policy, policy.config.obs_steps, policy.config.action_steps)

@@ -1,0 +1,123 @@
+"""DALI-R's latent imagination: the latent state, the latent world model and the task-completion scorer.
+
+- :class:`LatentEncoder` maps the current observation to ``s_t = [z_q, z_o]`` (robot state and
+  point cloud); it starts as a copy of the trained policy's encoders and is fine-tuned on the
+  mixed data, while the policy itself stays frozen.
+- :class:`LatentWorldModel` imagines the latent after an action chunk:
+  ``s_hat_{t+k} = s_t + W(s_t, a_{t:t+k})``, with a Transformer encoder over the latent token and
+  one token per action.
+- :class:`TaskCompletionScorer` gives the logit of eventual task completion from a latent.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from torch import nn
+
+from torchrl_dalir.modules.normalizer import MinMaxNormalizer
+
+
+class LatentEncoder(nn.Module):
+    """``s_t = [state features, point-cloud features]`` of one observation (no history).
+
+    Args:
+        point_normalizer, point_encoder, state_normalizer, state_encoder: modules with the
+            interfaces of :class:`~torchrl_dalir.modules.ChunkPolicy3D`'s; use :meth:`from_policy`.
+    """
+
+    def __init__(self, point_normalizer, point_encoder, state_normalizer, state_encoder):
+        super().__init__()
+        self.point_normalizer, self.point_encoder = point_normalizer, point_encoder
+        self.state_normalizer, self.state_encoder = state_normalizer, state_encoder
+        self.latent_dim = state_encoder.out_dim + point_encoder.out_dim
+
+    @classmethod
+    def from_policy(cls, policy) -> LatentEncoder:
+        """A trainable copy of a policy's encoders and normalizers (the policy is not touched)."""
+        parts = [policy.point_normalizer, policy.point_encoder, policy.state_normalizer, policy.state_encoder]
+        encoder = cls(*(copy.deepcopy(p) for p in parts))
+        encoder.requires_grad_(True)
+        return encoder
+
+    def point_features(self, point_cloud: torch.Tensor) -> torch.Tensor:
+        return self.point_encoder.point_features(self.point_normalizer(point_cloud))
+
+    def forward(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
+        if point_cloud.shape[-1] != 3 or point_cloud.shape[:-2] != agent_pos.shape[:-1]:
+            raise ValueError(
+                f"expected point_cloud [..., N, 3] and agent_pos [..., D] with the same batch, "
+                f"got {tuple(point_cloud.shape)} and {tuple(agent_pos.shape)}"
+            )
+        z_o = self.point_encoder(self.point_normalizer(point_cloud))
+        z_q = self.state_encoder(self.state_normalizer(agent_pos))
+        return torch.cat([z_q, z_o], dim=-1)
+
+
+class LatentWorldModel(nn.Module):
+    """Predicts the latent residual of an action chunk with a Transformer encoder.
+
+    Tokens: the latent ``s_t`` and the ``action_steps`` actions (normalised by the model's own
+    min-max normalizer, fitted on the mixed data), each projected to ``hidden`` with a learned
+    position embedding; the output at the latent token is the residual. The last layer starts at
+    zero, so an untrained model predicts "no change".
+
+    Args:
+        latent_dim: size of ``s_t``.
+        action_dim: size of an action.
+        action_steps: chunk length ``k`` (the paper: 8).
+        hidden, layers, heads: the Transformer (the paper: 256, 3, 4).
+
+    Example:
+        >>> wm = LatentWorldModel(latent_dim=128, action_dim=4, hidden=32, layers=1, heads=2)
+        >>> wm.imagine(torch.randn(5, 128), torch.randn(5, 8, 4)).shape
+        torch.Size([5, 128])
+    """
+
+    def __init__(self, latent_dim: int, action_dim: int, action_steps: int = 8, hidden: int = 256, layers: int = 3, heads: int = 4):
+        super().__init__()
+        self.latent_dim, self.action_dim, self.action_steps = latent_dim, action_dim, action_steps
+        self.action_normalizer = MinMaxNormalizer(action_dim)
+        self.latent_in = nn.Linear(latent_dim, hidden)
+        self.action_in = nn.Linear(action_dim, hidden)
+        self.position = nn.Parameter(torch.zeros(1 + action_steps, hidden))
+        nn.init.normal_(self.position, std=0.02)
+        layer = nn.TransformerEncoderLayer(hidden, heads, 4 * hidden, dropout=0.0, batch_first=True, norm_first=True)
+        self.transformer = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
+        self.out = nn.Sequential(nn.LayerNorm(hidden), nn.Linear(hidden, latent_dim))
+        nn.init.zeros_(self.out[-1].weight)
+        nn.init.zeros_(self.out[-1].bias)
+
+    def forward(self, latent: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The residual ``W(s_t, a)`` for latents ``[..., L]`` and chunks ``[..., k, A]``."""
+        if actions.shape[-2:] != (self.action_steps, self.action_dim):
+            raise ValueError(f"action chunks must be [..., {self.action_steps}, {self.action_dim}], got {tuple(actions.shape)}")
+        batch = latent.shape[:-1]
+        tokens = torch.cat(
+            [self.latent_in(latent).unsqueeze(-2), self.action_in(self.action_normalizer(actions))], dim=-2
+        ) + self.position
+        hidden = self.transformer(tokens.reshape(-1, *tokens.shape[-2:]))
+        return self.out(hidden[:, 0]).reshape(*batch, self.latent_dim)
+
+    def imagine(self, latent: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """``s_hat_{t+k} = s_t + W(s_t, a_{t:t+k})``."""
+        return latent + self(latent, actions)
+
+
+class TaskCompletionScorer(nn.Module):
+    """Logit of eventual task completion from a latent: an MLP ``L -> hidden -> hidden -> 1``.
+
+    Example:
+        >>> TaskCompletionScorer(128)(torch.randn(5, 128)).shape
+        torch.Size([5])
+    """
+
+    def __init__(self, latent_dim: int, hidden: int = 256):
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Linear(latent_dim, hidden), nn.Mish(), nn.Linear(hidden, hidden), nn.Mish(), nn.Linear(hidden, 1)
+        )
+
+    def forward(self, latent: torch.Tensor) -> torch.Tensor:
+        return self.net(latent).squeeze(-1)

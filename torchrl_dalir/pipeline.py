@@ -1,0 +1,81 @@
+"""Configuration of the end-to-end job, ``examples/train_dp3_wm.py``: one task, every stage.
+
+The stage configurations of the collection, policy and world-model jobs are nested here; the
+job's ``preset`` selects the matching preset of each, and its ``task``, ``seed``, ``device`` and
+``out`` are passed down, so one command line sets the whole run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
+from torchrl_dalir.data.config import CollectionConfig
+from torchrl_dalir.training.policy import PRESETS as POLICY_PRESETS
+from torchrl_dalir.training.policy import PolicyTrainingConfig
+from torchrl_dalir.training.world_model import PRESETS as WORLD_MODEL_PRESETS
+from torchrl_dalir.training.world_model import WorldModelTrainingConfig
+
+STAGES = ("demos", "policy", "mixed", "world_model", "evaluation")
+
+
+@dataclass
+class PipelineConfig:
+    """Args:
+    task, seed, device, out: passed to every stage; artifacts go under ``out``.
+    policy: the base policy's backbone (``fm`` or ``dp``).
+    base_policy_rollouts: trajectories of the trained base policy added to the mixed data.
+    eval_episodes, eval_seed: the evaluation episodes, shared by the base policy and DALI-R.
+    num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability.
+    redo: stages to run again even if their artifact exists (``redo=[world_model,evaluation]``).
+    """
+
+    task: str = "disassemble"
+    preset: str = "cpu"
+    seed: int = 0
+    device: str = "cpu"
+    out: str = "outputs/pipeline"
+    policy: str = "fm"
+    base_policy_rollouts: int = 100
+    eval_episodes: int = 50
+    eval_seed: int = 0
+    num_candidates: int = 32
+    dropout: float = 0.2
+    redo: list[str] = field(default_factory=list)
+    collection: CollectionConfig = field(default_factory=CollectionConfig)
+    policy_training: PolicyTrainingConfig = field(default_factory=PolicyTrainingConfig)
+    world_model: WorldModelTrainingConfig = field(default_factory=WorldModelTrainingConfig)
+
+    def __post_init__(self):
+        unknown = set(self.redo) - set(STAGES)
+        if unknown:
+            raise ValueError(f"unknown stages {sorted(unknown)}; stages are {STAGES}")
+        root = Path(self.out)
+        self.collection.task = self.policy_training.task = self.world_model.task = self.task
+        self.collection.out = self.policy_training.data = self.world_model.data = str(root / "data")
+        self.policy_training.out = str(root / "policies")
+        self.world_model.out = str(root / "world_models" / self.policy)
+        self.policy_training.policy = self.policy
+        for stage in (self.collection, self.policy_training, self.world_model):
+            stage.seed = self.seed
+        self.policy_training.device = self.world_model.device = self.device
+        self.world_model.policy_checkpoint = str(self.policy_training.run_dir() / "checkpoint.pt")
+
+    def results_dir(self) -> Path:
+        return Path(self.out) / "results" / self.task / f"{self.policy}_seed{self.seed}"
+
+
+def _nest(preset: str) -> dict:
+    return {
+        "collection": COLLECTION_PRESETS[preset],
+        "policy_training": POLICY_PRESETS[preset],
+        "world_model": WORLD_MODEL_PRESETS[preset],
+    }
+
+
+PRESETS: dict[str, dict] = {
+    "paper": {**_nest("paper"), "base_policy_rollouts": 200, "eval_episodes": 100},
+    "cpu": _nest("cpu"),
+    "smoke": {**_nest("smoke"), "base_policy_rollouts": 2, "eval_episodes": 2, "num_candidates": 4},
+}

@@ -1,0 +1,6 @@
+"""Inference-time reranking: candidate generators and the ``RerankingActor``."""
+
+from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE, RerankingActor
+from torchrl_dalir.reranking.candidates import GaussianObservationNoise, PointDropout
+
+__all__ = ["CANDIDATE_SCORES", "CHOSEN_CANDIDATE", "GaussianObservationNoise", "PointDropout", "RerankingActor"]

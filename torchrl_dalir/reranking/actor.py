@@ -1,0 +1,106 @@
+"""``RerankingActor``: DALI-R's inference-time latent imagination and reranking (Algorithm 1)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from torchrl_dalir import keys
+from torchrl_dalir.modules.policies import ChunkPolicy3D
+from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, TaskCompletionScorer
+from torchrl_dalir.reranking.candidates import PointDropout
+
+CANDIDATE_SCORES = ("dalir", "candidate_scores")  # [..., K] sigmoid(C(s_hat)) of every candidate
+CHOSEN_CANDIDATE = ("dalir", "chosen_candidate")  # [...] index of the executed candidate (0 = clean)
+
+
+class RerankingActor(TensorDictModuleBase):
+    """Samples candidate chunks from a frozen policy, imagines and scores each, keeps the best.
+
+    At each decision: build ``num_candidates`` perturbed policy inputs (candidate 0 is always
+    the clean observation), sample all chunks in one batched policy call, imagine each chunk's
+    executed part with one world-model step from the current latent, score the imagined latents,
+    and write the arg-max chunk to ``action_chunk`` (plus every score and the chosen index).
+    Wrap it with :func:`~torchrl_dalir.modules.receding_horizon.receding_horizon` exactly like
+    the base policy to execute 8 of 16 actions per decision.
+
+    Args:
+        policy: the frozen base policy.
+        encoder, world_model, scorer: the latent imagination module (see
+            :mod:`torchrl_dalir.modules.world_model`).
+        num_candidates: candidates per decision (the paper: 32).
+        candidates: the candidate generator (default :class:`PointDropout` ``(0.2)``; or
+            :class:`~torchrl_dalir.reranking.candidates.GaussianObservationNoise`).
+        seed: seeds candidate perturbations and policy noise, so decisions are reproducible.
+    """
+
+    in_keys = [keys.POINT_CLOUD, keys.AGENT_POS]
+    out_keys = [keys.ACTION_CHUNK, CANDIDATE_SCORES, CHOSEN_CANDIDATE]
+
+    def __init__(
+        self,
+        policy: ChunkPolicy3D,
+        encoder: LatentEncoder,
+        world_model: LatentWorldModel,
+        scorer: TaskCompletionScorer,
+        *,
+        num_candidates: int = 32,
+        candidates=None,
+        seed: int = 0,
+    ):
+        super().__init__()
+        if num_candidates < 1:
+            raise ValueError("num_candidates must be at least 1")
+        if world_model.action_dim != policy.action_dim:
+            raise ValueError(f"the world model takes {world_model.action_dim}-D actions; the policy outputs {policy.action_dim}-D")
+        if world_model.action_steps != policy.config.action_steps:
+            raise ValueError(f"the world model imagines {world_model.action_steps} actions; the policy executes {policy.config.action_steps}")
+        if world_model.latent_dim != encoder.latent_dim:
+            raise ValueError("the world model and the latent encoder disagree on the latent size")
+        self.policy, self.encoder, self.world_model, self.scorer = policy, encoder, world_model, scorer
+        for module in (policy, encoder, world_model, scorer):
+            module.eval().requires_grad_(False)
+        self.num_candidates = num_candidates
+        self.candidates = candidates if candidates is not None else PointDropout(0.2)
+        self.seed = seed
+        self.generator = torch.Generator().manual_seed(seed)
+
+    @classmethod
+    def from_checkpoints(cls, policy_path: str | Path, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
+        """Loads a policy and the world model trained on top of it; refuses a world model of
+        another task or another policy."""
+        from torchrl_dalir.training.policy import load_policy
+        from torchrl_dalir.training.world_model import load_world_model
+
+        policy = load_policy(policy_path, device)
+        parts = load_world_model(world_model_path, device)
+        if parts.task != policy.task:
+            raise ValueError(f"the world model at {world_model_path} is for task {parts.task!r}; the policy is for {policy.task!r}")
+        return cls(policy, parts.encoder, parts.world_model, parts.scorer, **kwargs)
+
+    @torch.no_grad()
+    def score(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
+        """Completion probabilities ``[B, K]`` of chunks ``[B, K, H, A]`` from observations ``[B, To, ...]``."""
+        latent = self.encoder(cloud[:, -1], agent_pos[:, -1])  # s_t from the current observation
+        start = self.policy.config.obs_steps - 1
+        executed = chunks[..., start : start + self.world_model.action_steps, :]
+        imagined = self.world_model.imagine(latent.unsqueeze(1).expand(-1, chunks.shape[1], -1), executed)
+        return torch.sigmoid(self.scorer(imagined))
+
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        cloud, agent_pos = tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS)
+        self.policy._check_observation(cloud, agent_pos)
+        batch = cloud.shape[:-3]
+        cloud, agent_pos = cloud.reshape(-1, *cloud.shape[-3:]), agent_pos.reshape(-1, *agent_pos.shape[-2:])
+        cond = self.candidates.conditions(self.policy, cloud, agent_pos, self.num_candidates, self.generator)
+        chunks = self.policy.sample(cond, self.generator)  # [B, K, H, A]
+        scores = self.score(cloud, agent_pos, chunks)
+        best = scores.argmax(-1)
+        chosen = chunks[torch.arange(len(best)), best]
+        tensordict.set(keys.ACTION_CHUNK, chosen.reshape(*batch, *chosen.shape[1:]))
+        tensordict.set(CANDIDATE_SCORES, scores.reshape(*batch, -1))
+        return tensordict.set(CHOSEN_CANDIDATE, best.reshape(batch))

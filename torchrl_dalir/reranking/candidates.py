@@ -1,0 +1,87 @@
+"""Candidate generators: how DALI-R perturbs the policy's input to get diverse action chunks.
+
+Each generator returns the policy's conditions for ``K`` candidates per observation, the first
+always from the clean observation.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from torchrl_dalir import keys
+
+
+class PointDropout(TensorDictModuleBase):
+    """Stochastic point dropout: every candidate keeps each point with probability ``1 - p``.
+
+    With DP3's max-pooled point encoder, dropping points is a mask on the pooling, so
+    :meth:`conditions` computes the per-point features once and pools them once per candidate
+    (the same result as re-encoding each dropped cloud, at a fraction of the cost). Called on a
+    tensordict, it is an ordinary module/transform: dropped points are replaced by a kept point
+    of the same cloud, so the cloud keeps its shape and a max-pooled encoder sees the kept set.
+
+    Args:
+        p: the probability of dropping a point.
+        seed: seeds the module's own generator (for use as a standalone module).
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"point_cloud": torch.rand(4, 512, 3)}, [4])
+        >>> PointDropout(0.2)(td)["point_cloud"].shape
+        torch.Size([4, 512, 3])
+    """
+
+    in_keys = [keys.POINT_CLOUD]
+    out_keys = [keys.POINT_CLOUD]
+
+    def __init__(self, p: float = 0.2, seed: int = 0):
+        super().__init__()
+        if not 0.0 <= p < 1.0:
+            raise ValueError(f"dropout probability must lie in [0, 1), got {p}")
+        self.p = p
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def keep_masks(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> torch.Tensor:
+        """A bool mask of ``shape`` (``[..., N]``), keeping at least one point per cloud."""
+        keep = torch.rand(shape, generator=generator if generator is not None else self.generator) >= self.p
+        keep[..., 0] |= ~keep.any(-1)
+        return keep
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        cloud = tensordict.get(keys.POINT_CLOUD)
+        keep = self.keep_masks(cloud.shape[:-1]).to(cloud.device)
+        first_kept = keep.float().argmax(-1, keepdim=True)  # index of a kept point per cloud
+        replacement = torch.gather(cloud, -2, first_kept.unsqueeze(-1).expand(*first_kept.shape, 3))
+        return tensordict.set(keys.POINT_CLOUD, torch.where(keep.unsqueeze(-1), cloud, replacement))
+
+    def conditions(self, policy, cloud, agent_pos, num_candidates: int, generator: torch.Generator) -> torch.Tensor:
+        """Conditions ``[B, K, C]`` for clouds ``[B, To, N, 3]``: one feature pass, ``K`` poolings."""
+        features = policy.point_features(cloud).unsqueeze(1)  # [B, 1, To, N, C]
+        keep = self.keep_masks((cloud.shape[0], num_candidates, *cloud.shape[1:3]), generator).to(cloud.device)
+        keep[:, 0] = True  # candidate 0 sees the clean observation
+        expanded = features.expand(-1, num_candidates, -1, -1, -1)
+        return policy.condition(expanded, agent_pos.unsqueeze(1).expand(-1, num_candidates, -1, -1), keep)
+
+
+class GaussianObservationNoise:
+    """The paper's "standard observation noise" baseline: i.i.d. Gaussian jitter of every point
+    (``std`` in metres); every candidate's cloud is encoded anew.
+
+    Args:
+        std: the noise's standard deviation, in world units (metres).
+    """
+
+    def __init__(self, std: float = 0.01):
+        if std < 0:
+            raise ValueError(f"noise std must be non-negative, got {std}")
+        self.std = std
+
+    def conditions(self, policy, cloud, agent_pos, num_candidates: int, generator: torch.Generator) -> torch.Tensor:
+        batch = cloud.shape[0]
+        noise = torch.randn((batch, num_candidates, *cloud.shape[1:]), generator=generator).to(cloud.device) * self.std
+        noise[:, 0] = 0  # candidate 0 sees the clean observation
+        noisy = cloud.unsqueeze(1) + noise
+        states = agent_pos.unsqueeze(1).expand(-1, num_candidates, -1, -1)
+        return policy.encode(noisy.flatten(0, 1), states.flatten(0, 1)).reshape(batch, num_candidates, -1)

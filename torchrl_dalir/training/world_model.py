@@ -1,0 +1,251 @@
+"""Training DALI-R's latent imagination module on the mixed-quality data, the policy frozen.
+
+Two stages, each resumable:
+
+1. **Scorer**: the latent encoder (a copy of the policy's encoders) and the task-completion
+   scorer are trained together with binary cross-entropy on the discounted Monte-Carlo targets.
+2. **World model**: the encoder is frozen, every row's latent is computed once, and the world
+   model learns ``s_{t+k} - s_t`` from ``(s_t, a_{t:t+k})``. Frozen targets cannot collapse; the
+   held-out MSE is reported next to the "no change" predictor ``s_hat = s_t``.
+
+Trajectories (not rows) are split into training and held-out sets, so held-out metrics never
+see a step of a training trajectory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+
+import torch
+from tensordict import TensorDict
+from torch import nn
+
+from torchrl_dalir import keys
+from torchrl_dalir.config import config_dict
+from torchrl_dalir.data import TrajectoryDataset
+from torchrl_dalir.data.windows import TrajectoryWindows
+from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
+from torchrl_dalir.objectives import LatentDynamicsLoss, TaskCompletionLoss
+from torchrl_dalir.objectives.latent_dynamics import LATENT
+from torchrl_dalir.training.logging import make_logger
+from torchrl_dalir.training.loop import OptimConfig, fit, save_checkpoint
+from torchrl_dalir.training.policy import load_policy
+
+
+@dataclass
+class WorldModelTrainingConfig:
+    """``examples/train_world_model.py``'s configuration (the paper's hyper-parameters by default)."""
+
+    task: str = "disassemble"
+    preset: str = "cpu"
+    seed: int = 0
+    device: str = "cpu"
+    data: str = "outputs/data"  # the mixed data is read from <data>/<task>/mixed
+    policy_checkpoint: str = "outputs/policies/disassemble/fm_seed0/checkpoint.pt"
+    out: str = "outputs/world_models"  # the run writes <out>/<task>/seed<seed>/
+    held_out_fraction: float = 0.1
+    scorer_hidden: int = 256
+    scorer_batch_size: int = 128
+    scorer_epochs: int = 30
+    scorer_steps: int = 0  # 0: derive from scorer_epochs
+    scorer_optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, betas=(0.9, 0.999), weight_decay=1e-3, warmup_steps=0))
+    wm_hidden: int = 256
+    wm_layers: int = 3
+    wm_heads: int = 4
+    wm_batch_size: int = 512
+    wm_epochs: int = 100
+    wm_steps: int = 0  # 0: derive from wm_epochs
+    wm_optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-4, betas=(0.9, 0.999), weight_decay=1e-4, warmup_steps=0))
+    bf16: bool = False
+    checkpoint_every: int = 500
+    log_every: int = 50
+    wandb: bool = True
+    progress: bool = True
+
+    def run_dir(self) -> Path:
+        return Path(self.out) / self.task / f"seed{self.seed}"
+
+
+PRESETS: dict[str, dict] = {
+    "paper": {},
+    # Minutes on a 2-core CPU: fewer scorer steps (its encoder pass dominates), a smaller world model.
+    "cpu": {"scorer_steps": 1500, "wm_steps": 3000, "wm_hidden": 128, "bf16": True},
+    "smoke": {
+        "scorer_steps": 20, "scorer_batch_size": 16, "wm_steps": 20, "wm_batch_size": 16, "wm_hidden": 32, "wm_layers": 1,
+        "wm_heads": 2, "scorer_hidden": 32, "checkpoint_every": 10, "log_every": 10, "wandb": False, "held_out_fraction": 0.4,
+    },
+}
+
+
+def split_trajectories(num_trajectories: int, held_out_fraction: float, seed: int) -> torch.Tensor:
+    """A bool mask over trajectories: ``True`` for held-out ones (at least one)."""
+    order = torch.randperm(num_trajectories, generator=torch.Generator().manual_seed(seed))
+    held = torch.zeros(num_trajectories, dtype=torch.bool)
+    held[order[: max(1, round(held_out_fraction * num_trajectories))]] = True
+    return held
+
+
+@torch.no_grad()
+def encode_rows(encoder: LatentEncoder, rows: TensorDict, batch_size: int = 1024, device="cpu") -> torch.Tensor:
+    """The latent of every row, ``[R, L]``."""
+    out = []
+    for start in range(0, len(rows), batch_size):
+        chunk = rows[start : start + batch_size]
+        out.append(encoder(chunk[keys.POINT_CLOUD].to(device), chunk[keys.AGENT_POS].to(device)).float().cpu())
+    return torch.cat(out)
+
+
+def _scorer_metrics(probabilities: torch.Tensor, targets: torch.Tensor, bins: int = 10) -> dict:
+    """Brier score and expected calibration error against the Monte-Carlo targets."""
+    edges = torch.linspace(0, 1, bins + 1)
+    which = torch.bucketize(probabilities, edges[1:-1])
+    ece = sum(
+        (which == b).float().mean() * (probabilities[which == b].mean() - targets[which == b].mean()).abs()
+        for b in range(bins)
+        if (which == b).any()
+    )
+    return {"brier": ((probabilities - targets) ** 2).mean().item(), "calibration_error": float(ece)}
+
+
+def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
+    """Trains (or resumes) the latent encoder, scorer and world model; returns the checkpoint."""
+    run_dir = cfg.run_dir()
+    final = run_dir / "world_model.pt"
+    if final.exists():
+        return final
+    torch.manual_seed(cfg.seed)
+    policy = load_policy(cfg.policy_checkpoint, task=cfg.task)
+    mixed = TrajectoryDataset.load(Path(cfg.data) / cfg.task / "mixed", task=cfg.task)
+    rows = mixed.rows
+    held = split_trajectories(mixed.num_trajectories, cfg.held_out_fraction, cfg.seed)
+    held_rows = held[rows[keys.TRAJECTORY_ID]]
+    train_rows = torch.nonzero(~held_rows).squeeze(-1)
+    logger = make_logger(run_dir, f"{cfg.task}_world_model_seed{cfg.seed}", use_wandb=cfg.wandb, config=config_dict(cfg))
+    autocast = torch.bfloat16 if cfg.bf16 else None
+
+    # Stage 1: latent encoder + task-completion scorer.
+    encoder = LatentEncoder.from_policy(policy)
+    scorer = TaskCompletionScorer(encoder.latent_dim, cfg.scorer_hidden)
+    pair = nn.ModuleDict({"encoder": encoder, "scorer": scorer}).to(cfg.device)
+    scorer_steps = cfg.scorer_steps or cfg.scorer_epochs * -(-len(train_rows) // cfg.scorer_batch_size)
+    ema_pair = fit(
+        TaskCompletionLoss(encoder, scorer),
+        pair,
+        lambda g: rows[train_rows[torch.randint(len(train_rows), (cfg.scorer_batch_size,), generator=g)]],
+        scorer_steps,
+        cfg.scorer_optim,
+        run_dir / "scorer.pt",
+        lambda ema: {},
+        seed=cfg.seed,
+        checkpoint_every=cfg.checkpoint_every,
+        log=lambda m, s: logger({f"scorer/{k}": v for k, v in m.items()}, s),
+        log_every=cfg.log_every,
+        autocast_dtype=autocast,
+        progress=cfg.progress,
+    ).module
+    encoder, scorer = ema_pair["encoder"].eval(), ema_pair["scorer"].eval()
+
+    # Stage 2: world model on latents of the frozen encoder.
+    latents = encode_rows(encoder, rows, device=cfg.device)
+    latent_rows = TensorDict(
+        {LATENT: latents, **{k: rows[k] for k in (keys.ACTION, keys.IS_FINAL, keys.TRAJECTORY_ID, keys.STEP, keys.COMPLETION_TARGET, keys.TERMINAL_LABEL, keys.QUALITY)}},
+        batch_size=[len(rows)],
+    )
+    k = policy.config.action_steps
+    windows = TrajectoryWindows(TrajectoryDataset(mixed.root, mixed.meta, latent_rows), obs_steps=1, horizon=k, future_offset=k, observation_keys=(LATENT,))
+    held_anchor = held[windows.dataset.rows[keys.TRAJECTORY_ID][windows.anchors]]
+    train_anchors = torch.nonzero(~held_anchor).squeeze(-1)
+
+    def wm_batch(indices):
+        batch = windows[indices]
+        batch[LATENT] = batch[LATENT][:, -1]
+        return batch
+
+    world_model = LatentWorldModel(encoder.latent_dim, policy.action_dim, k, cfg.wm_hidden, cfg.wm_layers, cfg.wm_heads)
+    world_model.action_normalizer.fit(rows[keys.ACTION][~rows[keys.IS_FINAL]])
+    world_model.to(cfg.device)
+    wm_steps = cfg.wm_steps or cfg.wm_epochs * -(-len(train_anchors) // cfg.wm_batch_size)
+    world_model = fit(
+        LatentDynamicsLoss(world_model),
+        world_model,
+        lambda g: wm_batch(train_anchors[torch.randint(len(train_anchors), (cfg.wm_batch_size,), generator=g)]),
+        wm_steps,
+        cfg.wm_optim,
+        run_dir / "dynamics.pt",
+        lambda ema: {},
+        seed=cfg.seed,
+        checkpoint_every=cfg.checkpoint_every,
+        log=lambda m, s: logger({f"world_model/{k}": v for k, v in m.items()}, s),
+        log_every=cfg.log_every,
+        progress=cfg.progress,
+    ).module.eval()
+
+    metrics = held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, torch.nonzero(held_anchor).squeeze(-1), wm_batch)
+    logger({f"held_out/{k}": v for k, v in metrics.items()}, wm_steps)
+    from torchrl_dalir import __version__
+
+    save_checkpoint(
+        final,
+        {
+            "kind": "world_model",
+            "task": cfg.task,
+            "config": config_dict(cfg),
+            "policy_checkpoint": str(cfg.policy_checkpoint),
+            "policy_config": asdict(policy.config),
+            "action_dim": policy.action_dim,
+            "state_dim": policy.state_dim,
+            "world_model_args": dict(latent_dim=encoder.latent_dim, action_dim=policy.action_dim, action_steps=k,
+                                     hidden=cfg.wm_hidden, layers=cfg.wm_layers, heads=cfg.wm_heads),
+            "scorer_hidden": cfg.scorer_hidden,
+            "encoder_state": encoder.state_dict(),
+            "scorer_state": scorer.state_dict(),
+            "world_model_state": world_model.state_dict(),
+            "held_out_trajectories": torch.nonzero(held).squeeze(-1).tolist(),
+            "metrics": metrics,
+            "library_version": __version__,
+        },
+    )
+    return final
+
+
+@torch.no_grad()
+def held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, held_anchors, wm_batch) -> dict:
+    """Scorer Brier score and calibration error on held-out rows; world-model MSE on held-out
+    windows next to the "no change" predictor."""
+    latents = latent_rows[LATENT][held_rows]
+    probabilities = torch.sigmoid(scorer(latents))
+    metrics = _scorer_metrics(probabilities, latent_rows[keys.COMPLETION_TARGET][held_rows].float())
+    batch = wm_batch(held_anchors)
+    imagined = world_model.imagine(batch[LATENT], batch[keys.ACTION_CHUNK])
+    future = batch["future", LATENT]
+    metrics["wm_mse"] = ((imagined - future) ** 2).mean().item()
+    metrics["no_change_mse"] = ((batch[LATENT] - future) ** 2).mean().item()
+    metrics["held_out_rows"] = int(held_rows.sum())
+    return metrics
+
+
+def load_world_model(path: str | Path, device="cpu") -> SimpleNamespace:
+    """Loads ``task``, ``encoder``, ``world_model``, ``scorer`` and ``metrics`` of a checkpoint."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no world-model checkpoint at {path}")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if state.get("kind") != "world_model":
+        raise ValueError(f"{path} is not a world-model checkpoint")
+    shell = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])
+    encoder = LatentEncoder.from_policy(shell)
+    encoder.load_state_dict(state["encoder_state"])
+    world_model = LatentWorldModel(**state["world_model_args"])
+    world_model.load_state_dict(state["world_model_state"])
+    scorer = TaskCompletionScorer(encoder.latent_dim, state["scorer_hidden"])
+    scorer.load_state_dict(state["scorer_state"])
+    return SimpleNamespace(
+        task=state["task"],
+        encoder=encoder.to(device).eval(),
+        world_model=world_model.to(device).eval(),
+        scorer=scorer.to(device).eval(),
+        metrics=state["metrics"],
+        policy_checkpoint=state["policy_checkpoint"],
+    )
