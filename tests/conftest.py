@@ -59,3 +59,17 @@ def collected(tmp_path_factory):
     root = tmp_path_factory.mktemp("collected") / "reach"
     sources = [Source("expert", 2), Source("expert_noisy", 2, noise_scale=0.3), Source("still", 1, policy=still_policy, expert=False)]
     return collect(SHORT_REACH, root, sources, seed=1, gamma=0.9, num_points=64, num_workers=1, chunk_size=2, progress=False)
+
+
+@pytest.fixture(scope="session")
+def trained_policy(collected, tmp_path_factory):
+    """A smoke-preset FM policy trained on the collected dataset (as its demos)."""
+    from torchrl_dalir.config import parse_config
+    from torchrl_dalir.training import POLICY_PRESETS, PolicyTrainingConfig, train_policy
+
+    data = tmp_path_factory.mktemp("data")
+    (data / "reach").mkdir()
+    (data / "reach" / "demos").symlink_to(collected.root)
+    out = tmp_path_factory.mktemp("policies")
+    cfg = parse_config(PolicyTrainingConfig, ["preset=smoke", "task=reach", f"data={data}", f"out={out}", "progress=false"], POLICY_PRESETS)
+    return cfg, train_policy(cfg)

@@ -7,11 +7,10 @@ from tensordict import TensorDict
 from torchrl.collectors import Collector
 
 from torchrl_dalir import keys, make_env
-from torchrl_dalir.config import parse_config
 from torchrl_dalir.modules import MinMaxNormalizer, PointCloudEncoder, PolicyConfig, make_policy
 from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.objectives import DiffusionLoss, FlowMatchingLoss
-from torchrl_dalir.training import POLICY_PRESETS, PolicyTrainingConfig, load_policy, train_policy
+from torchrl_dalir.training import load_policy, train_policy
 
 TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, inference_steps=3)
 
@@ -98,16 +97,6 @@ def test_training_lowers_the_loss(kind, loss_class):
         loss.backward()
         optimizer.step()
     assert loss_value().item() < 0.5 * before
-
-
-@pytest.fixture(scope="module")
-def trained_policy(collected, tmp_path_factory):
-    data = tmp_path_factory.mktemp("data")
-    (data / "reach").mkdir()
-    (data / "reach" / "demos").symlink_to(collected.root)
-    out = tmp_path_factory.mktemp("policies")
-    cfg = parse_config(PolicyTrainingConfig, ["preset=smoke", "task=reach", f"data={data}", f"out={out}", "progress=false"], POLICY_PRESETS)
-    return cfg, train_policy(cfg)
 
 
 def test_checkpoint_reloads_identical(trained_policy):

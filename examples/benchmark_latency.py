@@ -1,0 +1,87 @@
+"""Milliseconds per decision of the base policies alone and with DALI-R (the paper's Table 5).
+
+    python examples/benchmark_latency.py preset=cpu candidates=[1,4,8,16,32]
+
+Builds FM and DP policies and a latent world model and scorer with the ``preset``'s
+architectures (untrained: latency does not depend on the weights), then times full decisions
+on one observation of ``num_points`` points: median of ``repeats`` decisions after ``warmup``,
+all in one process.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import time
+from dataclasses import dataclass, field
+
+import torch
+from tensordict import TensorDict
+
+from torchrl_dalir import RerankingActor, keys
+from torchrl_dalir.config import config_dict, parse_config
+from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
+from torchrl_dalir.training import POLICY_PRESETS, WORLD_MODEL_PRESETS, WorldModelTrainingConfig
+from torchrl_dalir.utils import atomic_write_text
+
+
+@dataclass
+class Config:
+    preset: str = "cpu"
+    kinds: list[str] = field(default_factory=lambda: ["fm", "dp"])
+    fm_inference_steps: int = 1  # Euler steps of the FM policy (DP keeps its DDIM steps)
+    candidates: list[int] = field(default_factory=lambda: [1, 4, 8, 16, 32])
+    num_points: int = 512
+    action_dim: int = 4
+    state_dim: int = 4
+    warmup: int = 5
+    repeats: int = 30
+    threads: int = 2
+    out: str = "outputs/benchmarks/latency.json"
+
+
+def median_ms(fn, warmup: int, repeats: int) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1000 * statistics.median(times)
+
+
+@torch.no_grad()
+def main(argv: list[str]) -> None:
+    cfg = parse_config(Config, argv)
+    torch.set_num_threads(cfg.threads)
+    model_preset = POLICY_PRESETS[cfg.preset].get("model", {})
+    wm = parse_config(WorldModelTrainingConfig, [f"preset={cfg.preset}"], WORLD_MODEL_PRESETS)
+    obs = TensorDict({keys.POINT_CLOUD: torch.rand(1, 2, cfg.num_points, 3), keys.AGENT_POS: torch.rand(1, 2, cfg.state_dim)}, [1])
+    rows = []
+    for kind in cfg.kinds:
+        policy_cfg = PolicyConfig(kind=kind, **model_preset)
+        if kind == "fm":
+            policy_cfg.inference_steps = cfg.fm_inference_steps
+        policy = make_policy(policy_cfg, cfg.action_dim, cfg.state_dim).eval()
+        encoder = LatentEncoder.from_policy(policy)
+        world_model = LatentWorldModel(encoder.latent_dim, cfg.action_dim, policy_cfg.action_steps, wm.wm_hidden, wm.wm_layers, wm.wm_heads)
+        scorer = TaskCompletionScorer(encoder.latent_dim, wm.scorer_hidden)
+        base_ms = median_ms(lambda: policy(obs.clone()), cfg.warmup, cfg.repeats)
+        row = {"kind": kind, "inference_steps": policy_cfg.inference_steps, "base_policy_ms": round(base_ms, 2)}
+        for n in cfg.candidates:
+            actor = RerankingActor(policy, encoder, world_model, scorer, num_candidates=n)
+            row[f"dalir_{n}_ms"] = round(median_ms(lambda: actor(obs.clone()), cfg.warmup, cfg.repeats), 2)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    header = "| N_cand | " + " | ".join(f"{r['kind'].upper()} + DALI-R ms (FPS)" for r in rows) + " |"
+    lines = [header, "|" + " --- |" * (len(rows) + 1), "| base policy | " + " | ".join(f"{r['base_policy_ms']:.1f} ({1000 / r['base_policy_ms']:.0f})" for r in rows) + " |"]
+    for n in cfg.candidates:
+        lines.append(f"| {n} | " + " | ".join(f"{r[f'dalir_{n}_ms']:.1f} ({1000 / r[f'dalir_{n}_ms']:.0f})" for r in rows) + " |")
+    print("\n".join(lines))
+    atomic_write_text(cfg.out, json.dumps({"config": config_dict(cfg), "rows": rows, "table": lines}, indent=1))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,107 @@
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.envs import SerialEnv
+
+from conftest import SHORT_REACH
+from torchrl_dalir import RerankingActor, keys, make_env, receding_horizon
+from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
+from torchrl_dalir.reranking import CANDIDATE_SCORES, CHOSEN_CANDIDATE, GaussianObservationNoise, PointDropout
+
+TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, inference_steps=2)
+
+
+def _parts(kind="fm", action_dim=4, seed=0):
+    torch.manual_seed(seed)
+    policy = make_policy(PolicyConfig(kind=kind, **TINY), action_dim=action_dim, state_dim=4)
+    policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, action_dim) * 2 - 1)
+    encoder = LatentEncoder.from_policy(policy)
+    world_model = LatentWorldModel(encoder.latent_dim, action_dim, 8, hidden=32, layers=1, heads=2)
+    torch.nn.init.normal_(world_model.out[-1].weight, std=0.1)  # not the zero ("no change") init
+    scorer = TaskCompletionScorer(encoder.latent_dim, hidden=32)
+    return policy, encoder, world_model, scorer
+
+
+def _observation(batch=3, points=40):
+    g = torch.Generator().manual_seed(5)
+    return TensorDict({keys.POINT_CLOUD: torch.rand(batch, 2, points, 3, generator=g), keys.AGENT_POS: torch.rand(batch, 2, 4, generator=g)}, [batch])
+
+
+def test_point_dropout_module_keeps_shape_and_drops_about_p():
+    cloud = torch.rand(200, 64, 3)
+    dropped = PointDropout(0.3, seed=0)(TensorDict({keys.POINT_CLOUD: cloud.clone()}, [200]))[keys.POINT_CLOUD]
+    assert dropped.shape == cloud.shape
+    changed = (dropped != cloud).any(-1).float().mean().item()
+    assert changed == pytest.approx(0.3, abs=0.03)
+
+
+def test_shared_feature_dropout_equals_per_candidate_encoding():
+    policy, *_ = _parts()
+    obs = _observation(batch=2)
+    dropout = PointDropout(0.3)
+    k = 6
+    cond = dropout.conditions(policy, obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], k, torch.Generator().manual_seed(1))
+    keep = dropout.keep_masks((2, k, 2, 40), torch.Generator().manual_seed(1))
+    keep[:, 0] = True
+    for b in range(2):
+        for c in range(k):
+            # re-encode each dropped cloud (dropped points replaced by a kept one: same point set)
+            cloud = obs[keys.POINT_CLOUD][b].clone()
+            for frame in range(2):
+                kept = cloud[frame][keep[b, c, frame]]
+                cloud[frame] = torch.cat([kept, kept[:1].expand(40 - len(kept), 3)])
+            expected = policy.encode(cloud[None], obs[keys.AGENT_POS][b][None])[0]
+            torch.testing.assert_close(cond[b, c], expected, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(cond[:, 0], policy.encode(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS]))
+
+
+@pytest.mark.parametrize("candidates", [PointDropout(0.2), GaussianObservationNoise(0.01)])
+def test_actor_picks_the_best_scored_candidate_and_includes_the_clean_one(candidates):
+    policy, encoder, world_model, scorer = _parts()
+    actor = RerankingActor(policy, encoder, world_model, scorer, num_candidates=8, candidates=candidates, seed=3)
+    obs = _observation()
+    out = actor(obs.clone())
+    scores, chosen = out[CANDIDATE_SCORES], out[CHOSEN_CANDIDATE]
+    assert scores.shape == (3, 8) and out[keys.ACTION_CHUNK].shape == (3, 16, 4)
+    assert torch.equal(chosen, scores.argmax(-1))
+    # replay the decision: same generator stream -> same candidates
+    g = torch.Generator().manual_seed(3)
+    cond = candidates.conditions(policy, obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], 8, g)
+    torch.testing.assert_close(cond[:, 0], policy.encode(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS]))  # clean candidate
+    chunks = policy.sample(cond, g)
+    torch.testing.assert_close(actor.score(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], chunks), scores)
+    torch.testing.assert_close(out[keys.ACTION_CHUNK], chunks[torch.arange(3), chosen])
+
+
+def test_actor_is_deterministic_under_a_seed():
+    parts = _parts()
+    a = RerankingActor(*parts, num_candidates=4, seed=7)(_observation())
+    b = RerankingActor(*parts, num_candidates=4, seed=7)(_observation())
+    c = RerankingActor(*parts, num_candidates=4, seed=8)(_observation())
+    assert (a == b).all()
+    assert not torch.equal(a[keys.ACTION_CHUNK], c[keys.ACTION_CHUNK])
+
+
+def test_actor_rejects_bad_inputs_and_mismatched_models():
+    policy, encoder, world_model, scorer = _parts()
+    actor = RerankingActor(policy, encoder, world_model, scorer, num_candidates=2)
+    with pytest.raises(ValueError, match="point_cloud"):
+        actor(TensorDict({keys.POINT_CLOUD: torch.rand(3, 40, 3), keys.AGENT_POS: torch.rand(3, 2, 4)}, [3]))
+    bad = _observation()
+    bad[keys.AGENT_POS][0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        actor(bad)
+    other_world_model = LatentWorldModel(encoder.latent_dim, action_dim=6, hidden=32, layers=1, heads=2)
+    with pytest.raises(ValueError, match="6-D actions"):
+        RerankingActor(policy, encoder, other_world_model, scorer)
+
+
+def test_actor_runs_8_of_16_in_rollout_and_collector():
+    actor = receding_horizon(RerankingActor(*_parts(), num_candidates=4), obs_steps=2, action_steps=8)
+    env = SerialEnv(1, lambda: make_env(SHORT_REACH, seed=0, num_points=40, history=2))
+    rollout = env.rollout(16, actor, break_when_any_done=False)
+    assert rollout[keys.ACTION].shape == (1, 16, 4)
+    collector = Collector(env, actor, frames_per_batch=8, total_frames=8)
+    assert next(iter(collector))[keys.ACTION].shape[-1] == 4
+    collector.shutdown()

@@ -1,0 +1,97 @@
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_dalir import RerankingActor, keys
+from torchrl_dalir.config import parse_config
+from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
+from torchrl_dalir.objectives import LatentDynamicsLoss, TaskCompletionLoss
+from torchrl_dalir.training import WORLD_MODEL_PRESETS, WorldModelTrainingConfig, load_world_model, train_world_model
+
+
+def _train(loss_module, params, steps=80, lr=3e-3):
+    optimizer = torch.optim.Adam(params, lr=lr)
+    values = []
+    for _ in range(steps):
+        loss = sum(v for k, v in loss_module().items() if k.startswith("loss"))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        values.append(loss.item())
+    return values
+
+
+def test_untrained_world_model_predicts_no_change():
+    wm = LatentWorldModel(16, 4, hidden=32, layers=1, heads=2)
+    latent = torch.randn(5, 16)
+    assert torch.equal(wm.imagine(latent, torch.randn(5, 8, 4)), latent)
+    with pytest.raises(ValueError, match="8, 4"):
+        wm(latent, torch.randn(5, 16, 4))
+
+
+def test_dynamics_loss_falls_below_no_change():
+    torch.manual_seed(0)
+    wm = LatentWorldModel(16, 4, hidden=32, layers=1, heads=2)
+    latent, actions = torch.randn(64, 16), torch.rand(64, 8, 4) * 2 - 1
+    wm.action_normalizer.fit(actions)
+    future = latent + actions.mean(1).repeat(1, 4)  # a residual that depends on the actions
+    batch = TensorDict({"latent": latent, "future": {"latent": future}, keys.ACTION_CHUNK: actions}, [64])
+    loss = LatentDynamicsLoss(wm)
+    values = _train(lambda: loss(batch), wm.parameters(), steps=150)
+    no_change = ((latent - future) ** 2).mean().item()
+    assert values[0] == pytest.approx(no_change, rel=1e-4) and values[-1] < 0.2 * no_change
+
+
+def test_task_completion_loss_falls():
+    torch.manual_seed(0)
+    policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), 4, 4)
+    encoder = LatentEncoder.from_policy(policy)
+    scorer = TaskCompletionScorer(encoder.latent_dim, hidden=32)
+    cloud = torch.rand(32, 40, 3)
+    target = (cloud[:, :, 0].mean(-1) > 0.5).float()  # completion depends on where the points are
+    rows = TensorDict({keys.POINT_CLOUD: cloud, keys.AGENT_POS: torch.rand(32, 4), keys.COMPLETION_TARGET: target}, [32])
+    loss = TaskCompletionLoss(encoder, scorer)
+    values = _train(lambda: loss(rows), [*encoder.parameters(), *scorer.parameters()])
+    assert values[-1] < 0.5 * values[0]
+    # the policy's own encoder was copied, not shared
+    assert not any(p is q for p in encoder.parameters() for q in policy.parameters())
+
+
+@pytest.fixture(scope="module")
+def trained_world_model(collected, trained_policy, tmp_path_factory):
+    _, policy_path = trained_policy
+    data = tmp_path_factory.mktemp("wm_data")
+    (data / "reach").mkdir()
+    (data / "reach" / "mixed").symlink_to(collected.root)
+    out = tmp_path_factory.mktemp("world_models")
+    cfg = parse_config(
+        WorldModelTrainingConfig,
+        ["preset=smoke", "task=reach", f"data={data}", f"out={out}", f"policy_checkpoint={policy_path}", "progress=false"],
+        WORLD_MODEL_PRESETS,
+    )
+    return cfg, train_world_model(cfg), policy_path
+
+
+def test_world_model_checkpoint_and_metrics(trained_world_model):
+    cfg, path, _ = trained_world_model
+    parts = load_world_model(path)
+    assert parts.task == "reach"
+    for key in ("brier", "calibration_error", "wm_mse", "no_change_mse"):
+        assert parts.metrics[key] >= 0
+    state = torch.load(path, weights_only=False)
+    held = set(state["held_out_trajectories"])
+    assert 0 < len(held) < 5
+    assert train_world_model(cfg) == path  # a finished run is not redone
+
+
+def test_reranking_actor_from_checkpoints(trained_world_model):
+    _, wm_path, policy_path = trained_world_model
+    actor = RerankingActor.from_checkpoints(policy_path, wm_path, num_candidates=3)
+    obs = TensorDict({keys.POINT_CLOUD: torch.rand(2, 2, 64, 3), keys.AGENT_POS: torch.rand(2, 2, 4)}, [2])
+    assert actor(obs)[keys.ACTION_CHUNK].shape == (2, 16, 4)
+    state = torch.load(wm_path, weights_only=False)
+    state["task"] = "disassemble"
+    other = wm_path.with_name("other_task.pt")
+    torch.save(state, other)
+    with pytest.raises(ValueError, match="for task 'disassemble'"):
+        RerankingActor.from_checkpoints(policy_path, other)
