@@ -11,9 +11,7 @@ all in one process.
 from __future__ import annotations
 
 import json
-import statistics
 import sys
-import time
 from dataclasses import dataclass, field
 
 import torch
@@ -21,6 +19,7 @@ from tensordict import TensorDict
 
 from torchrl_dalir import RerankingActor, keys
 from torchrl_dalir.config import config_dict, parse_config
+from torchrl_dalir.evaluation.timing import median_ms
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.training import POLICY_PRESETS, WORLD_MODEL_PRESETS, WorldModelTrainingConfig
 from torchrl_dalir.utils import atomic_write_text
@@ -39,17 +38,6 @@ class Config:
     repeats: int = 30
     threads: int = 2
     out: str = "outputs/benchmarks/latency.json"
-
-
-def median_ms(fn, warmup: int, repeats: int) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1000 * statistics.median(times)
 
 
 @torch.no_grad()

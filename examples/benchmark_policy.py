@@ -12,9 +12,7 @@ dropout with fresh noise, and under point dropout with the same noise.
 from __future__ import annotations
 
 import json
-import statistics
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +22,7 @@ from torchrl_dalir import keys
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
+from torchrl_dalir.evaluation.timing import median_ms
 from torchrl_dalir.training import load_policy
 from torchrl_dalir.utils import atomic_write_text
 
@@ -40,17 +39,6 @@ class Config:
     threads: int = 2
     seed: int = 0
     out: str = "outputs/benchmarks/policy.json"
-
-
-def median_ms(fn, warmup: int, repeats: int) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1000 * statistics.median(times)
 
 
 def mean_pairwise_distance(chunks: torch.Tensor) -> float:

@@ -1,10 +1,10 @@
 import pytest
 import torch
+from conftest import SHORT_REACH
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import SerialEnv
 
-from conftest import SHORT_REACH
 from torchrl_dalir import RerankingActor, keys, make_env, receding_horizon
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.reranking import CANDIDATE_SCORES, CHOSEN_CANDIDATE, GaussianObservationNoise, PointDropout

@@ -11,6 +11,15 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
+def _save(fig, path: str | Path) -> Path:
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def plot_point_cloud(cloud, path: str | Path, title: str = "", crop_low=None, crop_high=None) -> Path:
     """Saves a 3D scatter (coloured by height) and a top view of one ``[N, 3]`` world-frame cloud."""
     cloud = np.asarray(cloud)
@@ -35,12 +44,7 @@ def plot_point_cloud(cloud, path: str | Path, title: str = "", crop_low=None, cr
         top.set_xlim(crop_low[0], crop_high[0])
         top.set_ylim(crop_low[1], crop_high[1])
     fig.suptitle(f"{title} ({len(np.unique(cloud, axis=0))} distinct of {len(cloud)} points)")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_imagination_diagnostics(curves: list[dict], path: str | Path, title: str = "") -> Path:
@@ -65,9 +69,4 @@ def plot_imagination_diagnostics(curves: list[dict], path: str | Path, title: st
         ax.legend(fontsize=7)
     left.set_ylabel("completion probability")
     fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)

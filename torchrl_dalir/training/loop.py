@@ -58,6 +58,17 @@ def save_checkpoint(path: str | Path, payload: dict) -> None:
     os.replace(tmp, path)
 
 
+def load_checkpoint(path: str | Path, kind: str) -> dict:
+    """Loads a checkpoint written by this library and checks that it holds a ``kind`` model."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no {kind} checkpoint at {path}")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if state.get("kind") != kind:
+        raise ValueError(f"{path} is not a {kind} checkpoint")
+    return state
+
+
 def fit(
     loss_module: LossModule,
     model: nn.Module,

@@ -18,7 +18,7 @@ from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.modules import ChunkPolicy3D, PolicyConfig, make_policy
 from torchrl_dalir.objectives import DiffusionLoss, FlowMatchingLoss
 from torchrl_dalir.training.logging import make_logger
-from torchrl_dalir.training.loop import OptimConfig, fit
+from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint
 
 
 @dataclass
@@ -128,12 +128,7 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
 
 def load_policy(path: str | Path, device: str | torch.device = "cpu", task: str | None = None) -> ChunkPolicy3D:
     """Loads the EMA policy of a checkpoint, in eval mode; refuses another task's policy."""
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"no policy checkpoint at {path}")
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    if state.get("kind") != "policy":
-        raise ValueError(f"{path} is not a policy checkpoint")
+    state = load_checkpoint(path, "policy")
     if task is not None and state["task"] != task:
         raise ValueError(f"{path} holds a policy for task {state['task']!r}, not {task!r}")
     policy = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])

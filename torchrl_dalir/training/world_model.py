@@ -30,7 +30,7 @@ from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig,
 from torchrl_dalir.objectives import LatentDynamicsLoss, TaskCompletionLoss
 from torchrl_dalir.objectives.latent_dynamics import LATENT
 from torchrl_dalir.training.logging import make_logger
-from torchrl_dalir.training.loop import OptimConfig, fit, save_checkpoint
+from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint, save_checkpoint
 from torchrl_dalir.training.policy import load_policy
 
 
@@ -228,12 +228,7 @@ def held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windo
 
 def load_world_model(path: str | Path, device="cpu") -> SimpleNamespace:
     """Loads ``task``, ``encoder``, ``world_model``, ``scorer`` and ``metrics`` of a checkpoint."""
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"no world-model checkpoint at {path}")
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    if state.get("kind") != "world_model":
-        raise ValueError(f"{path} is not a world-model checkpoint")
+    state = load_checkpoint(path, "world_model")
     shell = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])
     encoder = LatentEncoder.from_policy(shell)
     encoder.load_state_dict(state["encoder_state"])
