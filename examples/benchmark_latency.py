@@ -29,7 +29,7 @@ from torchrl_dalir.utils import atomic_write_text
 class Config:
     preset: str = "cpu"
     kinds: list[str] = field(default_factory=lambda: ["fm", "dp"])
-    fm_inference_steps: int = 1  # Euler steps of the FM policy (DP keeps its DDIM steps)
+    euler_steps: int = 1  # of the FM policy (DP keeps the preset's DDIM steps)
     candidates: list[int] = field(default_factory=lambda: [1, 4, 8, 16, 32])
     num_points: int = 512
     action_dim: int = 4
@@ -50,14 +50,13 @@ def main(argv: list[str]) -> None:
     rows = []
     for kind in cfg.kinds:
         policy_cfg = PolicyConfig(kind=kind, **model_preset)
-        if kind == "fm":
-            policy_cfg.inference_steps = cfg.fm_inference_steps
+        policy_cfg.euler_steps = cfg.euler_steps
         policy = make_policy(policy_cfg, cfg.action_dim, cfg.state_dim).eval()
         encoder = LatentEncoder.from_policy(policy)
         world_model = LatentWorldModel(encoder.latent_dim, cfg.action_dim, policy_cfg.action_steps, wm.wm_hidden, wm.wm_layers, wm.wm_heads)
         scorer = TaskCompletionScorer(encoder.latent_dim, wm.scorer_hidden)
         base_ms = median_ms(lambda: policy(obs.clone()), cfg.warmup, cfg.repeats)
-        row = {"kind": kind, "inference_steps": policy_cfg.inference_steps, "base_policy_ms": round(base_ms, 2)}
+        row = {"kind": kind, "steps": policy_cfg.euler_steps if kind == "fm" else policy_cfg.ddim_steps, "base_policy_ms": round(base_ms, 2)}
         for n in cfg.candidates:
             actor = RerankingActor(policy, encoder, world_model, scorer, num_candidates=n)
             row[f"dalir_{n}_ms"] = round(median_ms(lambda: actor(obs.clone()), cfg.warmup, cfg.repeats), 2)

@@ -59,14 +59,14 @@ def main(argv: list[str]) -> None:
         policy = load_policy(path)
         window = TrajectoryWindows(demos, policy.config.obs_steps, policy.config.horizon)[[len(demos.rows) // 3]]
         cloud, agent_pos = window[keys.POINT_CLOUD], window[keys.AGENT_POS]  # [1, To, N, 3], [1, To, D]
-        steps_to_time = cfg.nfe if policy.config.kind == "fm" else [policy.config.inference_steps]
+        steps_to_time = cfg.nfe if policy.config.kind == "fm" else [policy.config.ddim_steps]
         for steps in steps_to_time:
-            policy.config.inference_steps = steps
+            policy.config.euler_steps = policy.config.ddim_steps = steps
             g = torch.Generator().manual_seed(cfg.seed)
             n = cfg.candidates
             cond1 = policy.encode(cloud, agent_pos)
             row = {
-                "checkpoint": path, "kind": policy.config.kind, "inference_steps": steps,
+                "checkpoint": path, "kind": policy.config.kind, "steps": steps,
                 "encoder_ms_batch1": median_ms(lambda: policy.encode(cloud, agent_pos), cfg.warmup, cfg.repeats),
                 "generator_ms_batch1": median_ms(lambda: policy.sample(cond1, g), cfg.warmup, cfg.repeats),
                 "decision_ms_batch1": median_ms(lambda: policy.sample(policy.encode(cloud, agent_pos), g), cfg.warmup, cfg.repeats),

@@ -12,7 +12,7 @@ from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.objectives import DiffusionLoss, FlowMatchingLoss
 from torchrl_dalir.training import load_policy, train_policy
 
-TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, inference_steps=3)
+TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, ddim_steps=3, euler_steps=3)
 
 
 def _policy(kind, seed=0):

@@ -9,7 +9,7 @@ from torchrl_dalir import RerankingActor, keys, make_env, receding_horizon
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.reranking import CANDIDATE_SCORES, CHOSEN_CANDIDATE, GaussianObservationNoise, PointDropout
 
-TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, inference_steps=2)
+TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, ddim_steps=2, euler_steps=2)
 
 
 def _parts(kind="fm", action_dim=4, seed=0):

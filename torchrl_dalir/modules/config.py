@@ -19,7 +19,8 @@ class PolicyConfig:
         state_out: robot-state feature size.
         down_dims, kernel_size, groups, step_embed_dim: the conditional U-Net.
         train_timesteps: diffusion steps in training (also the time scale of the FM embedding).
-        inference_steps: DDIM steps (``dp``) or Euler steps, i.e. network evaluations (``fm``).
+        ddim_steps: DDIM denoising steps at inference (``dp``; DP3: 10).
+        euler_steps: Euler steps, i.e. network evaluations, at inference (``fm``).
         beta_schedule, clip_sample: DDIM noise schedule and clipping of the predicted sample.
     """
 
@@ -35,7 +36,8 @@ class PolicyConfig:
     groups: int = 8
     step_embed_dim: int = 128
     train_timesteps: int = 100
-    inference_steps: int = 10
+    ddim_steps: int = 10
+    euler_steps: int = 1
     beta_schedule: str = "squaredcos_cap_v2"
     clip_sample: bool = True
 

@@ -130,7 +130,7 @@ class DiffusionPolicy3D(ChunkPolicy3D):
         )
 
     def generate(self, cond: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-        self.scheduler.set_timesteps(self.config.inference_steps)
+        self.scheduler.set_timesteps(self.config.ddim_steps)
         x = noise
         for t in self.scheduler.timesteps:
             step = t.to(cond.device).expand(cond.shape[0])
@@ -140,11 +140,11 @@ class DiffusionPolicy3D(ChunkPolicy3D):
 
 class FlowMatchingPolicy3D(ChunkPolicy3D):
     """3D flow matching: a velocity field along the straight path from noise (t=0) to the chunk
-    (t=1), integrated with ``inference_steps`` Euler steps (network evaluations).
+    (t=1), integrated with ``euler_steps`` Euler steps (network evaluations).
 
     Example:
         >>> from torchrl_dalir.modules import PolicyConfig
-        >>> policy = FlowMatchingPolicy3D(PolicyConfig(kind="fm", down_dims=[32, 64, 128], inference_steps=1), 4, 4)
+        >>> policy = FlowMatchingPolicy3D(PolicyConfig(kind="fm", down_dims=[32, 64, 128], euler_steps=1), 4, 4)
         >>> policy.sample(policy.encode(torch.rand(3, 2, 64, 3), torch.rand(3, 2, 4))).shape
         torch.Size([3, 16, 4])
     """
@@ -154,7 +154,7 @@ class FlowMatchingPolicy3D(ChunkPolicy3D):
         return self.unet(x, t * self.config.train_timesteps, cond)
 
     def generate(self, cond: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-        steps = self.config.inference_steps
+        steps = self.config.euler_steps
         x = noise
         for k in range(steps):
             t = torch.full((cond.shape[0],), k / steps, device=cond.device)

@@ -55,7 +55,7 @@ PRESETS: dict[str, dict] = {
     "paper": {},
     # One task on a 2-core CPU in at most 20 minutes: a 5.3M-parameter U-Net, a larger rate.
     "cpu": {
-        "model": {"down_dims": [64, 128, 256], "inference_steps": 10},
+        "model": {"down_dims": [64, 128, 256]},
         "optim": {"lr": 3e-4, "warmup_steps": 100},
         "batch_size": 64,
         "num_steps": 2000,
@@ -63,7 +63,7 @@ PRESETS: dict[str, dict] = {
     },
     # Seconds, for tests.
     "smoke": {
-        "model": {"down_dims": [16, 32, 64], "point_hidden": [16, 32, 64], "inference_steps": 2, "train_timesteps": 20},
+        "model": {"down_dims": [16, 32, 64], "point_hidden": [16, 32, 64], "ddim_steps": 2, "euler_steps": 2, "train_timesteps": 20},
         "optim": {"lr": 1e-3, "warmup_steps": 2},
         "batch_size": 8,
         "num_steps": 30,
