@@ -1,0 +1,16 @@
+"""Trajectory data: collection, terminal labels, on-disk storage and training windows."""
+
+from torchrl_dalir.data.collection import Source, collect
+from torchrl_dalir.data.labels import completion_targets, quality_tag, trajectory_rows
+from torchrl_dalir.data.storage import DatasetMeta, DatasetWriter, TrajectoryDataset
+
+__all__ = [
+    "DatasetMeta",
+    "DatasetWriter",
+    "Source",
+    "TrajectoryDataset",
+    "collect",
+    "completion_targets",
+    "quality_tag",
+    "trajectory_rows",
+]

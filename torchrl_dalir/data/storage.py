@@ -1,0 +1,193 @@
+"""Labeled trajectories on disk: memory-mapped TensorDicts behind a TorchRL replay buffer.
+
+A dataset is a directory::
+
+    meta.json        what it holds (task, shapes, gamma, sources, shards) and whether it is complete
+    shards/00003/    one memory-mapped TensorDict per collection chunk, while collecting
+    rows/            all rows in one memory-mapped TensorDict, once complete
+
+Every shard and ``rows/`` is written under a temporary name and renamed into place, and
+``meta.json`` is replaced atomically after each, so a crash leaves a dataset that resumes from
+its last finished chunk and never one that loads as complete.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+from torchrl.data import ReplayBuffer, TensorStorage
+
+from torchrl_dalir import keys
+from torchrl_dalir.utils import atomic_write_text
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class DatasetMeta:
+    """The contents of ``meta.json``."""
+
+    task: str
+    num_points: int
+    gamma: float
+    seed: int
+    sources: list[dict]  # one per source: name, noise_scale, expert, num_trajectories
+    shards: list[dict] = field(default_factory=list)  # one per finished chunk
+    complete: bool = False
+    format_version: int = FORMAT_VERSION
+    library_version: str = ""
+
+    @property
+    def num_trajectories(self) -> int:
+        return sum(s["num_trajectories"] for s in self.shards)
+
+    @property
+    def num_rows(self) -> int:
+        return sum(s["num_rows"] for s in self.shards)
+
+    def plan(self) -> dict:
+        """The fields that must match for a collection to resume into this directory."""
+        return {k: getattr(self, k) for k in ("task", "num_points", "gamma", "seed", "sources", "format_version")}
+
+
+def _read_meta(root: Path) -> DatasetMeta:
+    path = root / "meta.json"
+    if not path.exists():
+        raise FileNotFoundError(f"no dataset at {root}: {path} is missing")
+    return DatasetMeta(**json.loads(path.read_text()))
+
+
+def _write_meta(root: Path, meta: DatasetMeta) -> None:
+    atomic_write_text(root / "meta.json", json.dumps(asdict(meta), indent=1))
+
+
+def _memmap_atomically(rows: TensorDict, directory: Path) -> None:
+    tmp = directory.with_name(directory.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    rows.memmap(tmp)
+    shutil.rmtree(directory, ignore_errors=True)
+    tmp.rename(directory)
+
+
+class DatasetWriter:
+    """Writes a dataset chunk by chunk; re-opening an unfinished directory resumes it.
+
+    Args:
+        root: the dataset directory.
+        meta: what the dataset will hold; when ``root`` already holds a dataset, its plan must
+            match (same task, points, gamma, seed and sources) or opening fails.
+    """
+
+    def __init__(self, root: str | Path, meta: DatasetMeta):
+        from torchrl_dalir import __version__
+
+        self.root = Path(root)
+        meta.library_version = __version__
+        if (self.root / "meta.json").exists():
+            existing = _read_meta(self.root)
+            if existing.plan() != meta.plan():
+                raise ValueError(
+                    f"{self.root} holds a dataset collected with another configuration:\n"
+                    f"  on disk:   {existing.plan()}\n  requested: {meta.plan()}\n"
+                    "choose another directory, or delete this one to start over"
+                )
+            meta = existing
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.meta = meta
+        _write_meta(self.root, meta)
+
+    def done_chunks(self) -> set[int]:
+        return {s["chunk"] for s in self.meta.shards}
+
+    def write_chunk(self, chunk: int, rows: TensorDict, **info) -> None:
+        """Stores a finished chunk's rows and records it (``info`` goes into the shard entry)."""
+        _memmap_atomically(rows, self.root / "shards" / f"{chunk:05d}")
+        num_trajectories = int(rows[keys.IS_FINAL].sum())
+        self.meta.shards.append({"chunk": chunk, "num_trajectories": num_trajectories, "num_rows": len(rows), **info})
+        _write_meta(self.root, self.meta)
+
+    def finalize(self) -> TrajectoryDataset:
+        """Joins the shards into ``rows/`` in chunk order, renumbers trajectories, marks complete."""
+        shards = sorted(self.meta.shards, key=lambda s: s["chunk"])
+        rows = torch.cat([TensorDict.load_memmap(self.root / "shards" / f"{s['chunk']:05d}") for s in shards])
+        rows[keys.TRAJECTORY_ID] = torch.cumsum(rows[keys.STEP] == 0, 0) - 1
+        _memmap_atomically(rows, self.root / "rows")
+        self.meta.shards = shards
+        self.meta.complete = True
+        _write_meta(self.root, self.meta)
+        shutil.rmtree(self.root / "shards", ignore_errors=True)
+        return TrajectoryDataset.load(self.root)
+
+
+class TrajectoryDataset:
+    """A complete dataset of labeled trajectories, memory-mapped from disk.
+
+    ``rows`` holds one row per observation (see :mod:`torchrl_dalir.data.labels`);
+    :meth:`replay_buffer` serves them through a TorchRL replay buffer without copying.
+    """
+
+    def __init__(self, root: Path, meta: DatasetMeta, rows: TensorDict):
+        self.root = root
+        self.meta = meta
+        self.rows = rows
+        is_start = rows[keys.STEP] == 0
+        self.starts = torch.nonzero(is_start).squeeze(-1)
+        self.lengths = torch.diff(self.starts, append=torch.tensor([len(rows)]))  # rows per trajectory (T + 1)
+
+    @classmethod
+    def load(
+        cls, root: str | Path, *, task: str | None = None, num_points: int | None = None
+    ) -> TrajectoryDataset:
+        """Loads a complete dataset; refuses an unfinished one, or one of another task or shape."""
+        root = Path(root)
+        meta = _read_meta(root)
+        if not meta.complete:
+            raise RuntimeError(
+                f"the dataset at {root} is incomplete ({len(meta.shards)} chunks written): "
+                "run the same collection again to resume it"
+            )
+        if meta.format_version != FORMAT_VERSION:
+            raise ValueError(f"{root} has dataset format {meta.format_version}; this library reads {FORMAT_VERSION}")
+        if task is not None and meta.task != task:
+            raise ValueError(f"the dataset at {root} is for task {meta.task!r}, not {task!r}")
+        if num_points is not None and meta.num_points != num_points:
+            raise ValueError(f"the dataset at {root} has {meta.num_points} points per cloud, not {num_points}")
+        rows = TensorDict.load_memmap(root / "rows")
+        if keys.POINT_CLOUD in rows.keys() and rows[keys.POINT_CLOUD].shape[-2:] != (meta.num_points, 3):
+            raise ValueError(f"{root}: point clouds of shape {tuple(rows[keys.POINT_CLOUD].shape[-2:])} contradict meta.json")
+        return cls(root, meta, rows)
+
+    @property
+    def task(self) -> str:
+        return self.meta.task
+
+    @property
+    def num_trajectories(self) -> int:
+        return len(self.starts)
+
+    def trajectory(self, index: int) -> TensorDict:
+        """The ``T + 1`` rows of trajectory ``index``."""
+        start = int(self.starts[index])
+        return self.rows[start : start + int(self.lengths[index])]
+
+    def terminal_labels(self) -> torch.Tensor:
+        return self.rows[keys.TERMINAL_LABEL][self.starts]
+
+    def quality_counts(self) -> dict[str, int]:
+        quality = self.rows[keys.QUALITY][self.starts]
+        return {tag: int((quality == i).sum()) for i, tag in enumerate(keys.QUALITY_TAGS)}
+
+    def replay_buffer(self, batch_size: int | None = None, sampler=None) -> ReplayBuffer:
+        """A TorchRL replay buffer over the memory-mapped rows (no copy)."""
+        return ReplayBuffer(storage=TensorStorage(self.rows), sampler=sampler, batch_size=batch_size)
+
+    def __repr__(self) -> str:
+        return (
+            f"TrajectoryDataset(task={self.task!r}, trajectories={self.num_trajectories}, rows={len(self.rows)}, "
+            f"quality={self.quality_counts()}, root={str(self.root)!r})"
+        )
