@@ -22,6 +22,10 @@ class PolicyConfig:
         ddim_steps: DDIM denoising steps at inference (``dp``; DP3: 10).
         euler_steps: Euler steps, i.e. network evaluations, at inference (``fm``).
         beta_schedule, clip_sample: DDIM noise schedule and clipping of the predicted sample.
+        flow_objective: ``"flow_matching"`` (plain linear-path regression) or ``"consistency"``
+            (FlowPolicy's consistency flow matching, meant for one Euler step).
+        consistency_delta, consistency_segments, consistency_alpha: its time gap, number of
+            path segments and velocity-term weight.
     """
 
     kind: str = "fm"
@@ -40,9 +44,15 @@ class PolicyConfig:
     euler_steps: int = 1
     beta_schedule: str = "squaredcos_cap_v2"
     clip_sample: bool = True
+    flow_objective: str = "flow_matching"
+    consistency_delta: float = 0.01
+    consistency_segments: int = 2
+    consistency_alpha: float = 1e-5
 
     def __post_init__(self):
         if self.kind not in ("dp", "fm"):
             raise ValueError(f"policy kind must be 'dp' or 'fm', got {self.kind!r}")
+        if self.flow_objective not in ("flow_matching", "consistency"):
+            raise ValueError(f"flow_objective must be 'flow_matching' or 'consistency', got {self.flow_objective!r}")
         if self.obs_steps - 1 + self.action_steps > self.horizon:
             raise ValueError("obs_steps - 1 + action_steps must not exceed the horizon")

@@ -16,7 +16,7 @@ from torchrl_dalir.config import config_dict
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.modules import ChunkPolicy3D, PolicyConfig, make_policy
-from torchrl_dalir.objectives import DiffusionLoss, FlowMatchingLoss
+from torchrl_dalir.objectives import ConsistencyFlowMatchingLoss, DiffusionLoss, FlowMatchingLoss
 from torchrl_dalir.training.logging import make_logger
 from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint
 
@@ -75,7 +75,12 @@ PRESETS: dict[str, dict] = {
 
 
 def _loss_module(policy: ChunkPolicy3D):
-    return DiffusionLoss(policy) if policy.config.kind == "dp" else FlowMatchingLoss(policy)
+    config = policy.config
+    if config.kind == "dp":
+        return DiffusionLoss(policy)
+    if config.flow_objective == "consistency":
+        return ConsistencyFlowMatchingLoss(policy, config.consistency_delta, config.consistency_segments, config.consistency_alpha)
+    return FlowMatchingLoss(policy)
 
 
 def train_policy(cfg: PolicyTrainingConfig) -> Path:
