@@ -53,7 +53,7 @@ class ChunkPolicy3D(TensorDictModuleBase):
         self.action_normalizer.fit(action)
 
     # -- observation -> condition ------------------------------------------------------------
-    def _check_observation(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> None:
+    def check_observation(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> None:
         to = self.config.obs_steps
         if point_cloud.dim() < 4 or point_cloud.shape[-3] != to or point_cloud.shape[-1] != 3:
             raise ValueError(
@@ -77,7 +77,7 @@ class ChunkPolicy3D(TensorDictModuleBase):
         return torch.cat([pooled, state], dim=-1).flatten(-2)
 
     def encode(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
-        self._check_observation(point_cloud, agent_pos)
+        self.check_observation(point_cloud, agent_pos)
         return self.condition(self.point_features(point_cloud), agent_pos, keep)
 
     # -- condition -> chunk --------------------------------------------------------------------

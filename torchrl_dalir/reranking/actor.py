@@ -93,7 +93,7 @@ class RerankingActor(TensorDictModuleBase):
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         cloud, agent_pos = tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS)
-        self.policy._check_observation(cloud, agent_pos)
+        self.policy.check_observation(cloud, agent_pos)
         batch = cloud.shape[:-3]
         cloud, agent_pos = cloud.reshape(-1, *cloud.shape[-3:]), agent_pos.reshape(-1, *agent_pos.shape[-2:])
         cond = self.candidates.conditions(self.policy, cloud, agent_pos, self.num_candidates, self.generator)
