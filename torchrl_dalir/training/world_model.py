@@ -167,10 +167,11 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     world_model.action_normalizer.fit(rows[keys.ACTION][~rows[keys.IS_FINAL]])
     world_model.to(cfg.device)
     wm_steps = cfg.wm_steps or cfg.wm_epochs * -(-len(train_anchors) // cfg.wm_batch_size)
+    train_windows = wm_batch(train_anchors)  # small (latents and actions only): gathered once
     world_model = fit(
         LatentDynamicsLoss(world_model),
         world_model,
-        lambda g: wm_batch(train_anchors[torch.randint(len(train_anchors), (cfg.wm_batch_size,), generator=g)]),
+        lambda g: train_windows[torch.randint(len(train_windows), (cfg.wm_batch_size,), generator=g)],
         wm_steps,
         cfg.wm_optim,
         run_dir / "dynamics.pt",
