@@ -125,26 +125,21 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     logger = make_logger(run_dir, f"{cfg.task}_world_model_seed{cfg.seed}", use_wandb=cfg.wandb, config=config_dict(cfg))
     autocast = torch.bfloat16 if cfg.bf16 else None
 
+    def train_stage(loss_module, model, data, train_index, batch_size, steps, optim, name, autocast_dtype=None):
+        """Trains one stage on random batches of ``data[train_index]``; resumes from ``<name>.pt``."""
+        return fit(
+            loss_module, model, lambda g: data[train_index[torch.randint(len(train_index), (batch_size,), generator=g)]],
+            steps, optim, run_dir / f"{name}.pt", lambda ema: {}, seed=cfg.seed, checkpoint_every=cfg.checkpoint_every,
+            log=lambda m, s: logger({f"{name}/{k}": v for k, v in m.items()}, s), log_every=cfg.log_every,
+            autocast_dtype=autocast_dtype, progress=cfg.progress,
+        ).module
+
     # Stage 1: latent encoder + task-completion scorer.
     encoder = LatentEncoder.from_policy(policy)
     scorer = TaskCompletionScorer(encoder.latent_dim, cfg.scorer_hidden)
     pair = nn.ModuleDict({"encoder": encoder, "scorer": scorer}).to(cfg.device)
     scorer_steps = cfg.scorer_steps or cfg.scorer_epochs * -(-len(train_rows) // cfg.scorer_batch_size)
-    ema_pair = fit(
-        TaskCompletionLoss(encoder, scorer),
-        pair,
-        lambda g: rows[train_rows[torch.randint(len(train_rows), (cfg.scorer_batch_size,), generator=g)]],
-        scorer_steps,
-        cfg.scorer_optim,
-        run_dir / "scorer.pt",
-        lambda ema: {},
-        seed=cfg.seed,
-        checkpoint_every=cfg.checkpoint_every,
-        log=lambda m, s: logger({f"scorer/{k}": v for k, v in m.items()}, s),
-        log_every=cfg.log_every,
-        autocast_dtype=autocast,
-        progress=cfg.progress,
-    ).module
+    ema_pair = train_stage(TaskCompletionLoss(encoder, scorer), pair, rows, train_rows, cfg.scorer_batch_size, scorer_steps, cfg.scorer_optim, "scorer", autocast)
     encoder, scorer = ema_pair["encoder"].eval(), ema_pair["scorer"].eval()
 
     # Stage 2: world model on latents of the frozen encoder.
@@ -168,20 +163,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     world_model.to(cfg.device)
     wm_steps = cfg.wm_steps or cfg.wm_epochs * -(-len(train_anchors) // cfg.wm_batch_size)
     train_windows = wm_batch(train_anchors)  # small (latents and actions only): gathered once
-    world_model = fit(
-        LatentDynamicsLoss(world_model),
-        world_model,
-        lambda g: train_windows[torch.randint(len(train_windows), (cfg.wm_batch_size,), generator=g)],
-        wm_steps,
-        cfg.wm_optim,
-        run_dir / "dynamics.pt",
-        lambda ema: {},
-        seed=cfg.seed,
-        checkpoint_every=cfg.checkpoint_every,
-        log=lambda m, s: logger({f"world_model/{k}": v for k, v in m.items()}, s),
-        log_every=cfg.log_every,
-        progress=cfg.progress,
-    ).module.eval()
+    world_model = train_stage(LatentDynamicsLoss(world_model), world_model, train_windows, torch.arange(len(train_windows)), cfg.wm_batch_size, wm_steps, cfg.wm_optim, "dynamics").eval()
 
     metrics = held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, torch.nonzero(held_anchor).squeeze(-1), wm_batch)
     logger({f"held_out/{k}": v for k, v in metrics.items()}, wm_steps)
