@@ -78,7 +78,7 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
     dalir = RerankingActor.from_checkpoints(
         policy_path, world_model_path, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.seed
     )
-    env_kwargs = dict(num_points=policy.num_points, history=policy.config.obs_steps)
+    env_kwargs = dict(num_points=policy.num_points, history=policy.config.obs_steps, device=cfg.device)
     rows = {}
     for name, actor in (("base policy", receding_horizon(policy, *steps)), ("DALI-R", receding_horizon(dalir, *steps))):
         torch.manual_seed(cfg.seed)

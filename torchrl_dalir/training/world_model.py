@@ -165,6 +165,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     train_windows = wm_batch(train_anchors)  # small (latents and actions only): gathered once
     world_model = train_stage(LatentDynamicsLoss(world_model), world_model, train_windows, torch.arange(len(train_windows)), cfg.wm_batch_size, wm_steps, cfg.wm_optim, "dynamics").eval()
 
+    encoder, scorer, world_model = encoder.cpu(), scorer.cpu(), world_model.cpu()  # metrics and checkpoint on the CPU
     metrics = held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, torch.nonzero(held_anchor).squeeze(-1), wm_batch)
     logger({f"held_out/{k}": v for k, v in metrics.items()}, wm_steps)
     from torchrl_dalir import __version__
