@@ -57,6 +57,8 @@ class PipelineConfig:
         self.policy_training.out = str(root / "policies")
         self.world_model.out = str(root / "world_models" / self.policy)
         self.policy_training.policy = self.policy
+        # the mixed data holds this policy's rollouts, so each policy and seed has its own
+        self.collection.mixed_name = self.world_model.mixed_name = f"mixed_{self.policy}_seed{self.seed}"
         for stage in (self.collection, self.policy_training, self.world_model):
             stage.seed = self.seed
         self.policy_training.device = self.world_model.device = self.device

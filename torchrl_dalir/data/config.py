@@ -20,6 +20,7 @@ class CollectionConfig:
     task: str = "disassemble"
     preset: str = "cpu"
     out: str = "outputs/data"
+    mixed_name: str = "mixed"  # the mixed data goes to <out>/<task>/<mixed_name>
     stage: str = "all"  # demos | mixed | all
     seed: int = 0  # demos use dataset seed 2 * seed, mixed data 2 * seed + 1
     num_demos: int = 10
@@ -36,7 +37,7 @@ class CollectionConfig:
         return Path(self.out) / self.task / "demos"
 
     def mixed_dir(self) -> Path:
-        return Path(self.out) / self.task / "mixed"
+        return Path(self.out) / self.task / self.mixed_name
 
     def mixed_sources(self) -> list[Source]:
         counts = [self.num_mixed // len(self.noise_scales)] * len(self.noise_scales)

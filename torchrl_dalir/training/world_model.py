@@ -42,7 +42,8 @@ class WorldModelTrainingConfig:
     preset: str = "cpu"
     seed: int = 0
     device: str = "cpu"
-    data: str = "outputs/data"  # the mixed data is read from <data>/<task>/mixed
+    data: str = "outputs/data"  # the mixed data is read from <data>/<task>/<mixed_name>
+    mixed_name: str = "mixed"
     policy_checkpoint: str = "outputs/policies/disassemble/fm_seed0/checkpoint.pt"
     out: str = "outputs/world_models"  # the run writes <out>/<task>/seed<seed>/
     held_out_fraction: float = 0.1
@@ -117,7 +118,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
         return final
     torch.manual_seed(cfg.seed)
     policy = load_policy(cfg.policy_checkpoint, task=cfg.task)
-    mixed = TrajectoryDataset.load(Path(cfg.data) / cfg.task / "mixed", task=cfg.task)
+    mixed = TrajectoryDataset.load(Path(cfg.data) / cfg.task / cfg.mixed_name, task=cfg.task)
     rows = mixed.rows
     held = split_trajectories(mixed.num_trajectories, cfg.held_out_fraction, cfg.seed)
     held_rows = held[rows[keys.TRAJECTORY_ID]]
