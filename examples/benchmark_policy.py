@@ -54,9 +54,8 @@ def main(argv: list[str]) -> None:
     torch.set_num_threads(cfg.threads)
     rows = []
     for path in cfg.checkpoints:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-        demos = TrajectoryDataset.load(Path(cfg.data) / state["task"] / "demos", task=state["task"])
         policy = load_policy(path)
+        demos = TrajectoryDataset.load(Path(cfg.data) / policy.task / "demos", task=policy.task)
         window = TrajectoryWindows(demos, policy.config.obs_steps, policy.config.horizon)[[len(demos.rows) // 3]]
         cloud, agent_pos = window[keys.POINT_CLOUD], window[keys.AGENT_POS]  # [1, To, N, 3], [1, To, D]
         steps_to_time = cfg.nfe if policy.config.kind == "fm" else [policy.config.ddim_steps]

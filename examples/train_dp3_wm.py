@@ -90,9 +90,8 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
 
     # Diagnostics on held-out trajectories: one success and one failure (Fig. 2).
     parts = load_world_model(world_model_path)
-    state = torch.load(world_model_path, map_location="cpu", weights_only=False)
     mixed = TrajectoryDataset.load(cfg.collection.mixed_dir(), task=cfg.task)
-    held = state["held_out_trajectories"]
+    held = parts.held_out_trajectories
     labels = mixed.terminal_labels()
     picks = [next((i for i in held if labels[i] == y), None) for y in (1.0, 0.0)]
     curves = [imagination_curves(parts, mixed, i, policy.config.action_steps) for i in picks if i is not None]

@@ -13,7 +13,6 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
-from torchrl_dalir import keys
 from torchrl_dalir.modules.policies import FlowMatchingPolicy3D
 
 
@@ -42,8 +41,7 @@ class ConsistencyFlowMatchingLoss(LossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         policy = self.policy
-        cond = policy.encode(tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS))
-        data = policy.action_normalizer(tensordict.get(keys.ACTION_CHUNK))
+        cond, data = policy.training_pair(tensordict)
         noise = torch.randn_like(data)
         n = data.shape[0]
         t = self.eps + (1 - self.eps) * torch.rand(n, device=data.device)

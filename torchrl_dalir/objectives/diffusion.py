@@ -6,7 +6,6 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
-from torchrl_dalir import keys
 from torchrl_dalir.modules.policies import DiffusionPolicy3D
 
 
@@ -34,8 +33,7 @@ class DiffusionLoss(LossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         policy = self.policy
-        cond = policy.encode(tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS))
-        target = policy.action_normalizer(tensordict.get(keys.ACTION_CHUNK))
+        cond, target = policy.training_pair(tensordict)
         noise = torch.randn_like(target)
         steps = torch.randint(0, policy.config.train_timesteps, (target.shape[0],), device=target.device)
         noisy = policy.scheduler.add_noise(target, noise, steps)

@@ -6,7 +6,6 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
-from torchrl_dalir import keys
 from torchrl_dalir.modules.policies import FlowMatchingPolicy3D
 
 
@@ -33,8 +32,7 @@ class FlowMatchingLoss(LossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         policy = self.policy
-        cond = policy.encode(tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS))
-        target = policy.action_normalizer(tensordict.get(keys.ACTION_CHUNK))
+        cond, target = policy.training_pair(tensordict)
         noise = torch.randn_like(target)
         t = torch.rand(target.shape[0], device=target.device)
         x_t = t[:, None, None] * target + (1 - t[:, None, None]) * noise

@@ -212,7 +212,8 @@ def held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windo
 
 
 def load_world_model(path: str | Path, device="cpu") -> SimpleNamespace:
-    """Loads ``task``, ``encoder``, ``world_model``, ``scorer`` and ``metrics`` of a checkpoint."""
+    """Loads ``task``, ``encoder``, ``world_model``, ``scorer``, ``metrics`` and
+    ``held_out_trajectories`` of a checkpoint."""
     state = load_checkpoint(path, "world_model")
     shell = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])
     encoder = LatentEncoder.from_policy(shell)
@@ -228,4 +229,5 @@ def load_world_model(path: str | Path, device="cpu") -> SimpleNamespace:
         scorer=scorer.to(device).eval(),
         metrics=state["metrics"],
         policy_checkpoint=state["policy_checkpoint"],
+        held_out_trajectories=state["held_out_trajectories"],
     )
