@@ -28,13 +28,14 @@ from torchrl_dalir.evaluation.plots import plot_imagination_diagnostics
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
 from torchrl_dalir.reranking import PointDropout
 from torchrl_dalir.training import load_policy, load_world_model, train_policy, train_world_model
+from torchrl_dalir.training.loop import training_finished
 from torchrl_dalir.training.policy import policy_actor
 from torchrl_dalir.utils import atomic_write_text
 
 
-def stage(name: str, cfg: PipelineConfig, artifact: Path, run) -> None:
-    """Runs ``run`` unless ``artifact`` exists (and the stage is not in ``cfg.redo``)."""
-    if artifact.exists() and name not in cfg.redo:
+def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exists) -> None:
+    """Runs ``run`` unless ``finished(artifact)`` (and the stage is not in ``cfg.redo``)."""
+    if finished(artifact) and name not in cfg.redo:
         print(f"[{name}] done before: {artifact}")
         return
     start = time.perf_counter()
@@ -55,7 +56,8 @@ def main(argv: list[str]) -> None:
         cfg.task, data.demos_dir(), [Source("expert", data.num_demos)], seed=2 * cfg.seed, successes_only=True, **common))
 
     # 2. The base policy learns from the demos alone (the data asymmetry).
-    stage("policy", cfg, policy_path, lambda: train_policy(cfg.policy_training))
+    # (an interrupted training leaves a checkpoint behind: the stage resumes it)
+    stage("policy", cfg, policy_path, lambda: train_policy(cfg.policy_training), finished=training_finished)
 
     # 3. Mixed-quality data: noisy experts and rollouts of the trained base policy, all labeled.
     base_rollouts = Source("base_policy", cfg.base_policy_rollouts, policy=partial(policy_actor, str(policy_path)), expert=False, history=2)
@@ -100,7 +102,7 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
     base, ours = rows["base policy"]["success_rate"], rows["DALI-R"]["success_rate"]
     metrics = parts.metrics
     table = "\n".join([
-        f"# DALI-R on {cfg.task} ({cfg.policy}, seed {cfg.seed}, preset {cfg.preset})",
+        f"# DALI-R on {cfg.task} ({cfg.policy}, seed {cfg.seed}, preset {cfg.preset}, scorer target {cfg.world_model.scorer_target})",
         "",
         "| method | success | episodes |",
         "| --- | --- | --- |",

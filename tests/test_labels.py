@@ -1,9 +1,10 @@
 import pytest
 import torch
 from conftest import synthetic_trajectory
+from tensordict import TensorDict
 
 from torchrl_dalir import keys
-from torchrl_dalir.data import completion_targets, quality_tag, trajectory_rows
+from torchrl_dalir.data import completion_targets, dense_reward_targets, quality_tag, trajectory_rows
 
 
 def test_completion_targets_formula():
@@ -44,3 +45,13 @@ def test_incomplete_trajectory_is_refused():
     trajectory["next", keys.DONE][-1] = False
     with pytest.raises(ValueError, match="complete"):
         trajectory_rows(trajectory, trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.9)
+
+
+def test_dense_reward_targets_are_normalised_reward_to_go_per_trajectory():
+    # two trajectories of 2 actions each (3 rows: s_0, s_1, s_T); the final row has no reward
+    rows = TensorDict(
+        {keys.REWARD: torch.tensor([1.0, 2.0, 0.0, 4.0, 0.0, 0.0]), keys.IS_FINAL: torch.tensor([0, 0, 1, 0, 0, 1]).bool()}, [6]
+    )
+    targets = dense_reward_targets(rows, gamma=0.5)
+    # reward-to-go: 1 + 0.5*2 = 2, 2, 0 | 4, 0, 0; divided by the largest (4)
+    assert torch.equal(targets, torch.tensor([0.5, 0.5, 0.0, 1.0, 0.0, 0.0]))

@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -27,3 +28,12 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     capsys.readouterr()
     run_example("train_dp3_wm.py", args, monkeypatch)
     assert capsys.readouterr().out.count("done before") == 5
+    # an interrupted policy training (its checkpoint short of the last step) is resumed, not skipped
+    checkpoint = tmp_path / "policies" / "reach" / f"{policy}_seed0" / "checkpoint.pt"
+    state = torch.load(checkpoint, weights_only=False)
+    state["step"] -= 1
+    torch.save(state, checkpoint)
+    run_example("train_dp3_wm.py", args, monkeypatch)
+    out = capsys.readouterr().out
+    assert "[policy] done before" not in out and out.count("done before") == 4
+    assert torch.load(checkpoint, weights_only=False)["step"] == state["num_steps"]

@@ -98,10 +98,18 @@ def test_actor_rejects_bad_inputs_and_mismatched_models():
 
 
 def test_actor_runs_8_of_16_in_rollout_and_collector():
-    actor = receding_horizon(RerankingActor(*_parts(), num_candidates=4), obs_steps=2, action_steps=8)
+    decision_keys = [CANDIDATE_SCORES, CHOSEN_CANDIDATE]
+    actor = receding_horizon(RerankingActor(*_parts(), num_candidates=4), obs_steps=2, action_steps=8, decision_keys=decision_keys)
     env = SerialEnv(1, lambda: make_env(SHORT_REACH, seed=0, num_points=40, history=2))
     rollout = env.rollout(16, actor, break_when_any_done=False)
     assert rollout[keys.ACTION].shape == (1, 16, 4)
+    # every step carries the scores of the decision its action came from: two decisions of 8 steps
+    scores, chosen = rollout[CANDIDATE_SCORES][0], rollout[CHOSEN_CANDIDATE][0]
+    assert scores.shape == (16, 4) and chosen.shape == (16,)
+    for block in (slice(0, 8), slice(8, 16)):
+        assert (scores[block] == scores[block][:1]).all() and (chosen[block] == chosen[block][0]).all()
+    assert not torch.equal(scores[0], scores[8])
+    assert torch.equal(chosen, scores.argmax(-1))
     collector = Collector(env, actor, frames_per_batch=8, total_frames=8)
     assert next(iter(collector))[keys.ACTION].shape[-1] == 4
     collector.shutdown()

@@ -1,3 +1,4 @@
+import dataclasses
 import pytest
 import torch
 from tensordict import TensorDict
@@ -95,3 +96,16 @@ def test_reranking_actor_from_checkpoints(trained_world_model):
     torch.save(state, other)
     with pytest.raises(ValueError, match="for task 'disassemble'"):
         RerankingActor.from_checkpoints(policy_path, other)
+
+
+def test_dense_reward_oracle_scorer(trained_world_model):
+    cfg, sparse_path, _ = trained_world_model
+    oracle = dataclasses.replace(cfg, scorer_target="dense_reward")
+    path = train_world_model(oracle)
+    assert path != sparse_path and path.parent.name.endswith("_dense_reward")
+    state = torch.load(path, weights_only=False)
+    assert state["config"]["scorer_target"] == "dense_reward"
+    # same data, same seed: only the scorer's targets differ
+    assert not torch.equal(state["scorer_state"]["net.0.weight"], torch.load(sparse_path, weights_only=False)["scorer_state"]["net.0.weight"])
+    with pytest.raises(ValueError, match="scorer_target"):
+        dataclasses.replace(cfg, scorer_target="reward")

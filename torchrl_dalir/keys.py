@@ -17,6 +17,7 @@ IS_INIT = "is_init"  # written by TorchRL's InitTracker at episode starts
 
 # Dataset (one row per observation of a stored trajectory).
 COMPLETION_TARGET = "completion_target"  # [...] float32, y_t = gamma^(T - t) * y_T
+DENSE_REWARD_TARGET = "dense_reward_target"  # [...] float32 in [0, 1], the oracle ablation's target
 TERMINAL_LABEL = "terminal_label"  # [...] float32, y_T: 1 success, 0 time-out
 TRAJECTORY_ID = "trajectory_id"  # [...] int64, index of the trajectory in its dataset
 STEP = "step"  # [...] int64, t, the index of the observation in its trajectory (0..T)

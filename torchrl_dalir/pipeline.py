@@ -65,7 +65,8 @@ class PipelineConfig:
         self.world_model.policy_checkpoint = str(self.policy_training.run_dir() / "checkpoint.pt")
 
     def results_dir(self) -> Path:
-        return Path(self.out) / "results" / self.task / f"{self.policy}_seed{self.seed}"
+        oracle = "" if self.world_model.scorer_target == "completion" else f"_{self.world_model.scorer_target}"
+        return Path(self.out) / "results" / self.task / f"{self.policy}_seed{self.seed}{oracle}"
 
 
 def _nest(preset: str) -> dict:

@@ -1,7 +1,7 @@
 """Trajectory data: collection, terminal labels, on-disk storage and training windows."""
 
 from torchrl_dalir.data.collection import Source, collect
-from torchrl_dalir.data.labels import completion_targets, quality_tag, trajectory_rows
+from torchrl_dalir.data.labels import completion_targets, dense_reward_targets, quality_tag, trajectory_rows
 from torchrl_dalir.data.storage import DatasetMeta, DatasetWriter, TrajectoryDataset
 
 __all__ = [
@@ -11,6 +11,7 @@ __all__ = [
     "TrajectoryDataset",
     "collect",
     "completion_targets",
+    "dense_reward_targets",
     "quality_tag",
     "trajectory_rows",
 ]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torchrl.objectives.value.functional import reward2go
 
 from torchrl_dalir import keys
 
@@ -23,6 +24,20 @@ def completion_targets(num_actions: int, terminal_label: float, gamma: float) ->
         raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
     exponents = torch.arange(num_actions, -1, -1, dtype=torch.float64)
     return (gamma**exponents * terminal_label).to(torch.float32)
+
+
+def dense_reward_targets(rows: TensorDictBase, gamma: float) -> torch.Tensor:
+    """The dense-reward oracle's targets (the paper's ablation): each row's discounted reward-to-go
+    within its trajectory, divided by the largest one so that targets lie in [0, 1].
+
+    ``rows`` are stored rows (``reward`` of the action taken at the row, ``is_final`` at ``s_T``).
+    Uses the simulator's shaped reward, which the method itself never sees.
+    """
+    reward = rows[keys.REWARD].float().unsqueeze(-1)
+    to_go = reward2go(reward, rows[keys.IS_FINAL].unsqueeze(-1), gamma, time_dim=-2).squeeze(-1)
+    if (to_go < 0).any():
+        raise ValueError("the dense-reward oracle expects non-negative rewards")
+    return to_go / to_go.max().clamp_min(1e-8)
 
 
 def quality_tag(success: bool, expert_source: bool) -> int:

@@ -60,7 +60,7 @@ class PointCloudObservation(gym.Wrapper):
         self.task = task
         self.num_points = num_points
         self.render_points = render
-        state_dim = env.observation_space.shape[0]
+        state_dim = len(task.privileged_state(env.unwrapped, env.observation_space.sample()))
         unbounded = dict(low=-np.inf, high=np.inf, dtype=np.float32)
         spaces = {
             keys.AGENT_POS: gym.spaces.Box(shape=(task.agent_pos_dim,), **unbounded),
@@ -75,7 +75,7 @@ class PointCloudObservation(gym.Wrapper):
         raw = self.env.unwrapped
         observation = {
             keys.AGENT_POS: np.asarray(self.task.agent_pos(raw, state), dtype=np.float32),
-            keys.PRIVILEGED_STATE: np.asarray(state, dtype=np.float32),
+            keys.PRIVILEGED_STATE: np.asarray(self.task.privileged_state(raw, state), dtype=np.float32),
         }
         if self.render_points:
             if self._camera is None:

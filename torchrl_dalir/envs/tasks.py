@@ -42,6 +42,14 @@ class TaskSpec:
     image_size: int
     agent_pos_dim: int
 
+    def privileged_state(self, raw_env, observation: np.ndarray) -> np.ndarray:
+        """What experts read. MetaWorld: the full observation (goal included). Adroit: the
+        observation followed by the simulator's ``qpos`` and ``qvel``, so an expert can rebuild
+        the kinematics (Jacobians, gravity terms) from the state alone."""
+        if self.suite == METAWORLD:
+            return observation
+        return np.concatenate([observation, raw_env.data.qpos, raw_env.data.qvel])
+
     def agent_pos(self, raw_env, observation: np.ndarray) -> np.ndarray:
         """Robot proprioception only: never object or goal state."""
         if self.suite == METAWORLD:

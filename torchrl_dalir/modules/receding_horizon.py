@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from tensordict import TensorDictBase
+from collections.abc import Sequence
+
+from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.modules.tensordict_module.actors import MultiStepActorWrapper
 
@@ -29,10 +31,46 @@ class ExecutedActions(TensorDictModuleBase):
         return tensordict.set(ACTION_PLAN, chunk[..., self.start : self.stop, :])
 
 
-def receding_horizon(chunk_policy: TensorDictModuleBase, obs_steps: int, action_steps: int) -> MultiStepActorWrapper:
+class RepeatPerStep(TensorDictModuleBase):
+    """Writes ``("plan", *key)``: each ``key`` repeated over ``action_steps``, so that values
+    computed once per decision (e.g. DALI-R's candidate scores) travel with the executed actions."""
+
+    def __init__(self, decision_keys: Sequence[NestedKey], action_steps: int):
+        super().__init__()
+        self.in_keys = list(decision_keys)
+        self.out_keys = [plan_key(key) for key in decision_keys]
+        self.action_steps = action_steps
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        for key, out in zip(self.in_keys, self.out_keys):
+            value = tensordict.get(key)
+            at = tensordict.ndim
+            tensordict.set(out, value.unsqueeze(at).expand(*value.shape[:at], self.action_steps, *value.shape[at:]))
+        return tensordict
+
+
+def plan_key(key: NestedKey) -> tuple[str, ...]:
+    return ("plan", *((key,) if isinstance(key, str) else key))
+
+
+def receding_horizon(
+    chunk_policy: TensorDictModuleBase, obs_steps: int, action_steps: int, decision_keys: Sequence[NestedKey] = ()
+) -> MultiStepActorWrapper:
     """Wraps any module that writes ``action_chunk`` into a TorchRL actor that executes
     ``action_steps`` actions per decision (TorchRL's ``MultiStepActorWrapper``), so
     ``env.rollout(policy=...)`` and collectors run it unchanged. The env needs ``is_init``
-    (``make_env`` adds an ``InitTracker``)."""
-    planner = TensorDictSequential(chunk_policy, ExecutedActions(obs_steps, action_steps))
-    return MultiStepActorWrapper(planner, n_steps=action_steps, action_keys=[keys.ACTION], chunk_keys=[ACTION_PLAN])
+    (``make_env`` adds an ``InitTracker``).
+
+    ``decision_keys``: other outputs of ``chunk_policy`` to keep; every step then carries the
+    value of the decision its action came from (the wrapper keeps only chunked keys otherwise).
+    """
+    decision_keys = list(decision_keys)
+    modules = [chunk_policy, ExecutedActions(obs_steps, action_steps)]
+    if decision_keys:
+        modules.append(RepeatPerStep(decision_keys, action_steps))
+    return MultiStepActorWrapper(
+        TensorDictSequential(*modules),
+        n_steps=action_steps,
+        action_keys=[keys.ACTION, *decision_keys],
+        chunk_keys=[ACTION_PLAN, *(plan_key(key) for key in decision_keys)],
+    )

@@ -69,6 +69,15 @@ def load_checkpoint(path: str | Path, kind: str) -> dict:
     return state
 
 
+def training_finished(checkpoint_path: str | Path) -> bool:
+    """Whether a :func:`fit` checkpoint exists and holds the last step (not an interrupted run)."""
+    path = Path(checkpoint_path)
+    if not path.exists():
+        return False
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    return state.get("step", 0) >= state.get("num_steps", float("inf"))
+
+
 def fit(
     loss_module: LossModule,
     model: nn.Module,

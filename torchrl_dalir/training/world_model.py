@@ -24,7 +24,7 @@ from torch import nn
 
 from torchrl_dalir import keys
 from torchrl_dalir.config import config_dict
-from torchrl_dalir.data import TrajectoryDataset
+from torchrl_dalir.data import TrajectoryDataset, dense_reward_targets
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.objectives import LatentDynamicsLoss, TaskCompletionLoss
@@ -32,6 +32,11 @@ from torchrl_dalir.objectives.latent_dynamics import LATENT
 from torchrl_dalir.training.logging import make_logger
 from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint, save_checkpoint
 from torchrl_dalir.training.policy import load_policy
+
+
+# The scorer's training target: the sparse terminal labels' Monte-Carlo targets (the method), or
+# the simulator's dense reward-to-go (an oracle, for the ablation).
+SCORER_TARGETS = {"completion": keys.COMPLETION_TARGET, "dense_reward": keys.DENSE_REWARD_TARGET}
 
 
 @dataclass
@@ -47,6 +52,8 @@ class WorldModelTrainingConfig:
     policy_checkpoint: str = "outputs/policies/disassemble/fm_seed0/checkpoint.pt"
     out: str = "outputs/world_models"  # the run writes <out>/<task>/seed<seed>/
     held_out_fraction: float = 0.1
+    scorer_target: str = "completion"  # completion (sparse labels) | dense_reward (the oracle ablation)
+    dense_reward_gamma: float = 0.99
     scorer_hidden: int = 256
     scorer_batch_size: int = 128
     scorer_epochs: int = 30
@@ -65,14 +72,20 @@ class WorldModelTrainingConfig:
     wandb: bool = True
     progress: bool = True
 
+    def __post_init__(self):
+        if self.scorer_target not in SCORER_TARGETS:
+            raise ValueError(f"scorer_target must be one of {sorted(SCORER_TARGETS)}, got {self.scorer_target!r}")
+
     def run_dir(self) -> Path:
-        return Path(self.out) / self.task / f"seed{self.seed}"
+        suffix = "" if self.scorer_target == "completion" else f"_{self.scorer_target}"
+        return Path(self.out) / self.task / f"seed{self.seed}{suffix}"
 
 
 PRESETS: dict[str, dict] = {
     "paper": {},
-    # Minutes on a 2-core CPU: fewer scorer steps (its encoder pass dominates), a smaller world model.
-    "cpu": {"scorer_steps": 1500, "wm_steps": 3000, "wm_hidden": 128, "bf16": True},
+    # About 10 minutes on a 2-core CPU: fewer scorer steps (its encoder pass dominates), a smaller
+    # world model on smaller batches (a batch-512 step of the paper's model takes ~0.6 s here).
+    "cpu": {"scorer_steps": 1000, "wm_steps": 1500, "wm_batch_size": 256, "wm_hidden": 128, "bf16": True},
     "smoke": {
         "scorer_steps": 20, "scorer_batch_size": 16, "wm_steps": 20, "wm_batch_size": 16, "wm_hidden": 32, "wm_layers": 1,
         "wm_heads": 2, "scorer_hidden": 32, "checkpoint_every": 10, "log_every": 10, "wandb": False, "held_out_fraction": 0.4,
@@ -120,6 +133,10 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     policy = load_policy(cfg.policy_checkpoint, task=cfg.task)
     mixed = TrajectoryDataset.load(Path(cfg.data) / cfg.task / cfg.mixed_name, task=cfg.task)
     rows = mixed.rows
+    target_key = SCORER_TARGETS[cfg.scorer_target]
+    if cfg.scorer_target == "dense_reward":  # an in-memory target next to the memory-mapped rows
+        rows = TensorDict(dict(rows.items()), batch_size=rows.batch_size)
+        rows[target_key] = dense_reward_targets(rows, cfg.dense_reward_gamma)
     held = split_trajectories(mixed.num_trajectories, cfg.held_out_fraction, cfg.seed)
     held_rows = held[rows[keys.TRAJECTORY_ID]]
     train_rows = torch.nonzero(~held_rows).squeeze(-1)
@@ -140,13 +157,13 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     scorer = TaskCompletionScorer(encoder.latent_dim, cfg.scorer_hidden)
     pair = nn.ModuleDict({"encoder": encoder, "scorer": scorer}).to(cfg.device)
     scorer_steps = cfg.scorer_steps or cfg.scorer_epochs * -(-len(train_rows) // cfg.scorer_batch_size)
-    ema_pair = train_stage(TaskCompletionLoss(encoder, scorer), pair, rows, train_rows, cfg.scorer_batch_size, scorer_steps, cfg.scorer_optim, "scorer", autocast)
+    ema_pair = train_stage(TaskCompletionLoss(encoder, scorer, target_key), pair, rows, train_rows, cfg.scorer_batch_size, scorer_steps, cfg.scorer_optim, "scorer", autocast)
     encoder, scorer = ema_pair["encoder"].eval(), ema_pair["scorer"].eval()
 
     # Stage 2: world model on latents of the frozen encoder.
     latents = encode_rows(encoder, rows, device=cfg.device)
     latent_rows = TensorDict(
-        {LATENT: latents, **{k: rows[k] for k in (keys.ACTION, keys.IS_FINAL, keys.TRAJECTORY_ID, keys.STEP, keys.COMPLETION_TARGET, keys.TERMINAL_LABEL, keys.QUALITY)}},
+        {LATENT: latents, **{k: rows[k] for k in (keys.ACTION, keys.IS_FINAL, keys.TRAJECTORY_ID, keys.STEP, keys.COMPLETION_TARGET, target_key, keys.TERMINAL_LABEL, keys.QUALITY)}},
         batch_size=[len(rows)],
     )
     k = policy.config.action_steps
@@ -167,7 +184,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     world_model = train_stage(LatentDynamicsLoss(world_model), world_model, train_windows, torch.arange(len(train_windows)), cfg.wm_batch_size, wm_steps, cfg.wm_optim, "dynamics").eval()
 
     encoder, scorer, world_model = encoder.cpu(), scorer.cpu(), world_model.cpu()  # metrics and checkpoint on the CPU
-    metrics = held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, torch.nonzero(held_anchor).squeeze(-1), wm_batch)
+    metrics = held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, torch.nonzero(held_anchor).squeeze(-1), wm_batch, target_key)
     logger({f"held_out/{k}": v for k, v in metrics.items()}, wm_steps)
     from torchrl_dalir import __version__
 
@@ -196,12 +213,12 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
 
 
 @torch.no_grad()
-def held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, held_anchors, wm_batch) -> dict:
-    """Scorer Brier score and calibration error on held-out rows; world-model MSE on held-out
-    windows next to the "no change" predictor."""
+def held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, held_anchors, wm_batch, target_key=keys.COMPLETION_TARGET) -> dict:
+    """Scorer Brier score and calibration error against its targets on held-out rows; world-model
+    MSE on held-out windows next to the "no change" predictor."""
     latents = latent_rows[LATENT][held_rows]
     probabilities = torch.sigmoid(scorer(latents))
-    metrics = _scorer_metrics(probabilities, latent_rows[keys.COMPLETION_TARGET][held_rows].float())
+    metrics = _scorer_metrics(probabilities, latent_rows[target_key][held_rows].float())
     batch = wm_batch(held_anchors)
     imagined = world_model.imagine(batch[LATENT], batch[keys.ACTION_CHUNK])
     future = batch["future", LATENT]
