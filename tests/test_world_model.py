@@ -1,4 +1,5 @@
 import dataclasses
+
 import pytest
 import torch
 from tensordict import TensorDict

@@ -33,7 +33,6 @@ from torchrl_dalir.training.logging import make_logger
 from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint, save_checkpoint
 from torchrl_dalir.training.policy import load_policy
 
-
 # The scorer's training target: the sparse terminal labels' Monte-Carlo targets (the method), or
 # the simulator's dense reward-to-go (an oracle, for the ablation).
 SCORER_TARGETS = {"completion": keys.COMPLETION_TARGET, "dense_reward": keys.DENSE_REWARD_TARGET}
