@@ -17,16 +17,12 @@ import time
 from functools import partial
 from pathlib import Path
 
-import torch
-
-from torchrl_dalir import RerankingActor, receding_horizon
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.data import Source, TrajectoryDataset, collect
-from torchrl_dalir.evaluation import evaluate
+from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints
 from torchrl_dalir.evaluation.diagnostics import imagination_curves
 from torchrl_dalir.evaluation.plots import plot_imagination_diagnostics
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
-from torchrl_dalir.reranking import PointDropout
 from torchrl_dalir.training import load_policy, load_world_model, train_policy, train_world_model
 from torchrl_dalir.training.loop import training_finished
 from torchrl_dalir.training.policy import policy_actor
@@ -75,20 +71,11 @@ def main(argv: list[str]) -> None:
 
 def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path: Path) -> None:
     results = cfg.results_dir()
-    policy = load_policy(policy_path, cfg.device, task=cfg.task)
-    steps = (policy.config.obs_steps, policy.config.action_steps)
-    dalir = RerankingActor.from_checkpoints(
-        policy_path, world_model_path, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.seed
+    rows = evaluate_checkpoints(
+        policy_path, world_model_path, episodes=cfg.eval_episodes, seed=cfg.eval_seed, device=cfg.device,
+        num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.seed,
     )
-    env_kwargs = dict(num_points=policy.num_points, history=policy.config.obs_steps, device=cfg.device)
-    rows = {}
-    for name, actor in (("base policy", receding_horizon(policy, *steps)), ("DALI-R", receding_horizon(dalir, *steps))):
-        torch.manual_seed(cfg.seed)
-        start = time.perf_counter()
-        result = evaluate(actor, cfg.task, cfg.eval_episodes, cfg.eval_seed, **env_kwargs)
-        rows[name] = {"success_rate": result.success_rate, "episodes": cfg.eval_episodes, "seconds": round(time.perf_counter() - start, 1),
-                      "records": result.to_dict()["episodes"]}
-        print(f"[evaluation] {name}: {result.success_rate:.1%} over {cfg.eval_episodes} episodes", flush=True)
+    policy = load_policy(policy_path, task=cfg.task)
 
     # Diagnostics on held-out trajectories: one success and one failure (Fig. 2).
     parts = load_world_model(world_model_path)
@@ -99,7 +86,7 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
     curves = [imagination_curves(parts, mixed, i, policy.config.action_steps) for i in picks if i is not None]
     plot = plot_imagination_diagnostics(curves, results / "imagination.png", title=f"{cfg.task}: held-out trajectories")
 
-    base, ours = rows["base policy"]["success_rate"], rows["DALI-R"]["success_rate"]
+    base, ours = rows[BASE]["success_rate"], rows[DALIR]["success_rate"]
     metrics = parts.metrics
     table = "\n".join([
         f"# DALI-R on {cfg.task} ({cfg.policy}, seed {cfg.seed}, preset {cfg.preset}, scorer target {cfg.world_model.scorer_target})",

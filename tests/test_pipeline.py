@@ -28,6 +28,20 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     capsys.readouterr()
     run_example("train_dp3_wm.py", args, monkeypatch)
     assert capsys.readouterr().out.count("done before") == 5
+    # examples/evaluate.py on the job's checkpoints replays the job's evaluation exactly
+    policy_path = tmp_path / "policies" / "reach" / f"{policy}_seed0" / "checkpoint.pt"
+    world_model_path = tmp_path / "world_models" / policy / "reach" / "seed0" / "world_model.pt"
+    run_example("evaluate.py", [f"policy={policy_path}", f"world_model={world_model_path}", "episodes=2", "num_candidates=4",
+                                f"out={tmp_path / 'evaluation'}"], monkeypatch)
+    replay = json.loads((tmp_path / "evaluation" / "evaluation.json").read_text())["success"]
+    for method in ("base policy", "DALI-R"):
+        assert replay[method]["records"] == data["success"][method]["records"]
+    assert (tmp_path / "evaluation" / "evaluation.csv").read_text().count("\n") == 1 + 4
+    run_example("summarize_results.py", [f"out={tmp_path}"], monkeypatch)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert [(r["task"], r["policy"], r["seeds"]) for r in summary] == [("reach", policy, [0])]
+    assert summary[0]["dalir"] == [data["success"]["DALI-R"]["success_rate"]]
+    assert (tmp_path / f"summary_{policy}.png").stat().st_size > 0
     # an interrupted policy training (its checkpoint short of the last step) is resumed, not skipped
     checkpoint = tmp_path / "policies" / "reach" / f"{policy}_seed0" / "checkpoint.pt"
     state = torch.load(checkpoint, weights_only=False)

@@ -70,3 +70,21 @@ def plot_imagination_diagnostics(curves: list[dict], path: str | Path, title: st
     left.set_ylabel("completion probability")
     fig.suptitle(title)
     return _save(fig, path)
+
+
+def plot_success_by_task(table: list[dict], path: str | Path, title: str = "") -> Path:
+    """Grouped bars of base-policy and DALI-R success per task (mean over seeds, std as error bars,
+    one dot per seed). ``table`` rows: ``task``, ``base`` and ``dalir`` (lists of per-seed rates)."""
+    fig, ax = plt.subplots(figsize=(1.8 + 1.4 * len(table), 3.2), dpi=90)
+    x = np.arange(len(table))
+    for offset, key, label in ((-0.18, "base", "base policy"), (0.18, "dalir", "+ DALI-R")):
+        rates = [100 * np.asarray(row[key]) for row in table]
+        ax.bar(x + offset, [r.mean() for r in rates], 0.34, yerr=[r.std() for r in rates], capsize=3, label=label, alpha=0.8)
+        for i, r in enumerate(rates):
+            ax.scatter(np.full(len(r), x[i] + offset), r, color="k", s=8, zorder=3)
+    ax.set_xticks(x, [row["task"] for row in table])
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 100)
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(title)
+    return _save(fig, path)

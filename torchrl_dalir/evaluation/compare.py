@@ -1,0 +1,57 @@
+"""The base policy and DALI-R on the same evaluation episodes, from their checkpoints."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+
+from torchrl_dalir.evaluation.success_rate import evaluate
+from torchrl_dalir.modules.receding_horizon import receding_horizon
+from torchrl_dalir.reranking import PointDropout, RerankingActor
+
+BASE, DALIR = "base policy", "DALI-R"
+
+
+def evaluate_checkpoints(
+    policy_path: str | Path,
+    world_model_path: str | Path | None = None,
+    *,
+    episodes: int = 50,
+    seed: int = 0,
+    device: str = "cpu",
+    num_candidates: int = 32,
+    dropout: float = 0.2,
+    actor_seed: int = 0,
+    progress: bool = True,
+) -> dict[str, dict]:
+    """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` is given,
+    with 8-of-16 receding-horizon execution on the same ``episodes`` evaluation episodes.
+
+    Returns ``{"base policy": {...}, "DALI-R": {...}}``, each with ``success_rate``, ``episodes``,
+    ``seconds`` and per-episode ``records``.
+    """
+    from torchrl_dalir.training.policy import load_policy
+
+    policy = load_policy(policy_path, device)
+    steps = (policy.config.obs_steps, policy.config.action_steps)
+    actors = {BASE: policy}
+    if world_model_path is not None:
+        actors[DALIR] = RerankingActor.from_checkpoints(
+            policy_path, world_model_path, device, num_candidates=num_candidates, candidates=PointDropout(dropout), seed=actor_seed
+        )
+    env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}
+    rows = {}
+    for name, actor in actors.items():
+        torch.manual_seed(actor_seed)
+        start = time.perf_counter()
+        result = evaluate(receding_horizon(actor, *steps), policy.task, episodes, seed, progress=progress, **env_kwargs)
+        rows[name] = {
+            "success_rate": result.success_rate,
+            "episodes": episodes,
+            "seconds": round(time.perf_counter() - start, 1),
+            "records": result.to_dict()["episodes"],
+        }
+        print(f"[evaluation] {policy.task} {name}: {result.success_rate:.1%} over {episodes} episodes", flush=True)
+    return rows
