@@ -5,8 +5,9 @@
     python examples/train_dp3_wm.py preset=smoke out=/tmp/dalir      # about a minute, for tests
 
 Every stage writes an artifact under ``out`` and is skipped when that artifact exists
-(``redo=[evaluation]`` runs a stage again); interrupted stages resume. The results (a markdown
-table, JSON and the diagnostic plots) go to ``<out>/results/<task>/<policy>_seed<seed>/``.
+(``redo=[world_model]`` runs that stage and the later ones again from scratch, keeping the
+previous runs aside); interrupted stages resume. The results (a markdown table, JSON and the
+diagnostic plots) go to ``<out>/results/<task>/<policy>_seed<seed>/``.
 """
 
 from __future__ import annotations
@@ -30,8 +31,13 @@ from torchrl_dalir.utils import atomic_write_text
 
 
 def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exists) -> None:
-    """Runs ``run`` unless ``finished(artifact)`` (and the stage is not in ``cfg.redo``)."""
-    if finished(artifact) and name not in cfg.redo:
+    """Runs ``run`` unless ``finished(artifact)``. A stage in ``cfg.redo`` starts from scratch:
+    its directory (the artifact's parent) is first moved aside to ``<dir>.replaced-<time>``."""
+    if name in cfg.redo and artifact.parent.exists():
+        aside = artifact.parent.with_name(f"{artifact.parent.name}.replaced-{time.strftime('%Y%m%d-%H%M%S')}")
+        artifact.parent.rename(aside)
+        print(f"[{name}] redo: the previous run is kept in {aside}")
+    elif finished(artifact):
         print(f"[{name}] done before: {artifact}")
         return
     start = time.perf_counter()

@@ -51,3 +51,8 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     out = capsys.readouterr().out
     assert "[policy] done before" not in out and out.count("done before") == 4
     assert torch.load(checkpoint, weights_only=False)["step"] == state["num_steps"]
+    # redoing a stage starts it and every later stage from scratch, keeping the previous runs aside
+    run_example("train_dp3_wm.py", [*args, "redo=[world_model]"], monkeypatch)
+    out = capsys.readouterr().out
+    assert "[world_model] redo" in out and "[evaluation] redo" in out and out.count("done before") == 3
+    assert len(list((tmp_path / "world_models" / policy / "reach").glob("seed0.replaced-*"))) == 1

@@ -28,7 +28,9 @@ class PipelineConfig:
     base_policy_rollouts: trajectories of the trained base policy added to the mixed data.
     eval_episodes, eval_seed: the evaluation episodes, shared by the base policy and DALI-R.
     num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability.
-    redo: stages to run again even if their artifact exists (``redo=[world_model,evaluation]``).
+    redo: stages to run again from scratch even if their artifact exists
+        (``redo=[world_model]``); later stages are redone too, and each previous run's
+        directory is kept aside.
     """
 
     task: str = "disassemble"
@@ -51,6 +53,8 @@ class PipelineConfig:
         unknown = set(self.redo) - set(STAGES)
         if unknown:
             raise ValueError(f"unknown stages {sorted(unknown)}; stages are {STAGES}")
+        if self.redo:  # a redone stage invalidates every later stage
+            self.redo = list(STAGES[min(STAGES.index(s) for s in self.redo) :])
         root = Path(self.out)
         self.collection.task = self.policy_training.task = self.world_model.task = self.task
         self.collection.out = self.policy_training.data = self.world_model.data = str(root / "data")
