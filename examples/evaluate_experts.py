@@ -1,4 +1,5 @@
-"""Success rates of the experts and their drift-noise versions (state-only envs, no rendering).
+"""Success rates and speed of the experts and their drift-noise versions (state-only envs, no
+rendering; the speed is wall-clock env steps per second, the env included).
 
     python examples/evaluate_experts.py tasks=[disassemble,shelf-place] noise_scales=[0,0.1] episodes=50
 
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,9 +39,13 @@ def main(argv: list[str]) -> None:
             policy = make_expert(task)
             if scale > 0:
                 policy = add_drift_noise(policy, scale, cfg.noise_correlation, seed=cfg.seed)
-            result = evaluate(policy, task, cfg.episodes, cfg.seed, render=False)
-            rows.append({"task": task, "noise_scale": scale, "success_rate": result.success_rate, "episodes": cfg.episodes})
-            print(f"{task:18s} noise {scale:5.2f}  success {result.success_rate:6.1%}  ({cfg.episodes} episodes)", flush=True)
+            start = time.perf_counter()
+            result = evaluate(policy, task, cfg.episodes, cfg.seed, render=False, progress=False)
+            steps_per_s = sum(e.steps for e in result.episodes) / (time.perf_counter() - start)
+            rows.append({"task": task, "noise_scale": scale, "success_rate": result.success_rate, "episodes": cfg.episodes,
+                         "steps_per_s": round(steps_per_s, 1)})
+            print(f"{task:18s} noise {scale:5.2f}  success {result.success_rate:6.1%}  ({cfg.episodes} episodes, "
+                  f"{steps_per_s:.0f} env steps/s with the env)", flush=True)
     out = Path(cfg.out)
     atomic_write_text(out / "experts.json", json.dumps({"config": config_dict(cfg), "rows": rows}, indent=2))
 

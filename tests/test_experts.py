@@ -2,7 +2,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from torchrl_dalir import keys
+from torchrl_dalir import keys, make_env
+from torchrl_dalir.envs import TASKS
 from torchrl_dalir.experts import DriftNoise, make_expert
 
 
@@ -14,10 +15,13 @@ def test_metaworld_expert_acts_on_privileged_state():
     assert action.abs().max() <= 1.0
 
 
-@pytest.mark.parametrize("task", ["door", "pen"])
-def test_adroit_expert_is_a_clear_error(task):
-    with pytest.raises(NotImplementedError, match="Adroit"):
-        make_expert(task)
+@pytest.mark.parametrize("task", sorted(TASKS))
+def test_every_benchmark_task_has_an_expert_that_acts_in_its_env(task):
+    env = make_env(task, seed=0, render=False)
+    td = make_expert(task)(env.reset())
+    assert td[keys.ACTION].shape == env.action_spec.shape
+    assert env.action_spec.is_in(td[keys.ACTION])
+    env.step(td)
 
 
 def _noise_sequence(noise, steps, batch, reset_at=()):
