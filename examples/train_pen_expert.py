@@ -67,7 +67,7 @@ class PenTrainConfig:
     eval_every: int = 25
     eval_episodes: int = 50
     checkpoint_every: int = 5
-    run_dir: str = "/work/logs/pen_run"
+    run_dir: str = "outputs/pen_expert"
     output: str = str(DEFAULT_WEIGHTS)
 
 
