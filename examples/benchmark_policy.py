@@ -6,7 +6,8 @@ Latency: milliseconds per decision (median of ``repeats`` after ``warmup``), bat
 of ``candidates`` chunks from one observation, split into the encoder (per-point MLP, pooling,
 state MLP) and the generator (DDIM or Euler steps). Diversity: mean pairwise L2 distance between
 ``candidates`` chunks from one demo observation, when only the noise is re-sampled, under point
-dropout with fresh noise, and under point dropout with the same noise.
+dropout with fresh noise, and under point dropout with the same noise; averaged over
+``observations`` observations spread evenly over the demos.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ class Config:
     data: str = "outputs/data"  # a demo observation comes from <data>/<task>/demos
     nfe: list[int] = field(default_factory=lambda: [1, 10])  # FM Euler steps to time (DP keeps its DDIM steps)
     candidates: int = 32
+    observations: int = 8  # demo observations the diversity is averaged over
     dropout: float = 0.2
     warmup: int = 5
     repeats: int = 30
@@ -48,6 +50,20 @@ def mean_pairwise_distance(chunks: torch.Tensor) -> float:
     return (d.sum() / (n * (n - 1))).item()
 
 
+def chunk_diversity(policy, cloud, agent_pos, n: int, dropout: float, g: torch.Generator) -> dict[str, float]:
+    """Mean pairwise distance of ``n`` chunks from one observation under three sources of variety."""
+    cond = policy.encode(cloud, agent_pos)
+    keep = torch.rand(n, *cloud.shape[1:3], generator=g) >= dropout
+    keep[0] = True  # the clean observation is always one candidate
+    dropped = policy.condition(policy.point_features(cloud).expand(n, -1, -1, -1), agent_pos.expand(n, -1, -1), keep)
+    same_noise = torch.randn(1, policy.config.horizon, policy.action_dim, generator=g).expand(n, -1, -1)
+    return {
+        "noise_only": mean_pairwise_distance(policy.sample(cond.expand(n, -1), g)),
+        "dropout_fresh_noise": mean_pairwise_distance(policy.sample(dropped, g)),
+        "dropout_same_noise": mean_pairwise_distance(policy.sample(dropped, noise=same_noise)),
+    }
+
+
 @torch.no_grad()
 def main(argv: list[str]) -> None:
     cfg = parse_config(Config, argv)
@@ -56,8 +72,10 @@ def main(argv: list[str]) -> None:
     for path in cfg.checkpoints:
         policy = load_policy(path)
         demos = TrajectoryDataset.load(Path(cfg.data) / policy.task / "demos", task=policy.task)
-        window = TrajectoryWindows(demos, policy.config.obs_steps, policy.config.horizon)[[len(demos.rows) // 3]]
-        cloud, agent_pos = window[keys.POINT_CLOUD], window[keys.AGENT_POS]  # [1, To, N, 3], [1, To, D]
+        windows = TrajectoryWindows(demos, policy.config.obs_steps, policy.config.horizon)
+        spread = torch.linspace(0, len(windows) - 1, cfg.observations).long().tolist()
+        observations = [(w[keys.POINT_CLOUD], w[keys.AGENT_POS]) for w in (windows[[i]] for i in spread)]  # [1, To, N, 3], [1, To, D]
+        cloud, agent_pos = observations[0]
         steps_to_time = cfg.nfe if policy.config.kind == "fm" else [policy.config.ddim_steps]
         for steps in steps_to_time:
             policy.config.euler_steps = policy.config.ddim_steps = steps
@@ -69,17 +87,13 @@ def main(argv: list[str]) -> None:
                 "encoder_ms_batch1": median_ms(lambda: policy.encode(cloud, agent_pos), cfg.warmup, cfg.repeats),
                 "generator_ms_batch1": median_ms(lambda: policy.sample(cond1, g), cfg.warmup, cfg.repeats),
                 "decision_ms_batch1": median_ms(lambda: policy.sample(policy.encode(cloud, agent_pos), g), cfg.warmup, cfg.repeats),
+                f"encoder_ms_batch{n}": median_ms(lambda: policy.encode(cloud.expand(n, -1, -1, -1), agent_pos.expand(n, -1, -1)), cfg.warmup, cfg.repeats),
                 f"generator_ms_batch{n}": median_ms(lambda: policy.sample(cond1.expand(n, -1), g), cfg.warmup, cfg.repeats),
             }
-            # Diversity of n chunks from one observation.
-            keep = torch.rand(n, *cloud.shape[1:3], generator=g) >= cfg.dropout
-            keep[0] = True  # the clean observation is always one candidate
-            features = policy.point_features(cloud)
-            dropped = policy.condition(features.expand(n, -1, -1, -1), agent_pos.expand(n, -1, -1), keep)
-            same_noise = torch.randn(1, policy.config.horizon, policy.action_dim, generator=g).expand(n, -1, -1)
-            row["diversity_noise_only"] = mean_pairwise_distance(policy.sample(cond1.expand(n, -1), g))
-            row["diversity_dropout_fresh_noise"] = mean_pairwise_distance(policy.sample(dropped, g))
-            row["diversity_dropout_same_noise"] = mean_pairwise_distance(policy.sample(dropped, noise=same_noise))
+            # Diversity of n chunks from one observation, averaged over observations.
+            diversity = [chunk_diversity(policy, c, a, n, cfg.dropout, g) for c, a in observations]
+            for name in diversity[0]:
+                row[f"diversity_{name}"] = sum(d[name] for d in diversity) / len(diversity)
             rows.append(row)
             print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
     atomic_write_text(cfg.out, json.dumps(rows, indent=1))

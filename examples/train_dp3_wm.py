@@ -53,9 +53,9 @@ def main(argv: list[str]) -> None:
     world_model_path = cfg.world_model.run_dir() / "world_model.pt"
     results = cfg.results_dir()
 
-    # 1. Expert demos: successful expert trajectories only.
+    # 1. Expert demos: successful expert trajectories only, the same for every training seed.
     stage("demos", cfg, data.demos_dir() / "rows", lambda: collect(
-        cfg.task, data.demos_dir(), [Source("expert", data.num_demos)], seed=2 * cfg.seed, successes_only=True, **common))
+        cfg.task, data.demos_dir(), [Source("expert", data.num_demos)], seed=cfg.demo_seed, successes_only=True, **common))
 
     # 2. The base policy learns from the demos alone (the data asymmetry).
     # (an interrupted training leaves a checkpoint behind: the stage resumes it)

@@ -41,6 +41,9 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert [(r["task"], r["policy"], r["seeds"]) for r in summary] == [("reach", policy, [0])]
     assert summary[0]["dalir"] == [data["success"]["DALI-R"]["success_rate"]]
+    pairs = list(zip(*(data["success"][m]["records"] for m in ("base policy", "DALI-R"))))
+    assert summary[0]["base_only"] == sum(b["success"] and not d["success"] for b, d in pairs)
+    assert summary[0]["dalir_only"] == sum(d["success"] and not b["success"] for b, d in pairs)
     assert (tmp_path / f"summary_{policy}.png").stat().st_size > 0
     # an interrupted policy training (its checkpoint short of the last step) is resumed, not skipped
     checkpoint = tmp_path / "policies" / "reach" / f"{policy}_seed0" / "checkpoint.pt"

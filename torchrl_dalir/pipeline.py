@@ -24,6 +24,8 @@ STAGES = ("demos", "policy", "mixed", "world_model", "evaluation")
 class PipelineConfig:
     """Args:
     task, seed, device, out: passed to every stage; artifacts go under ``out``.
+    demo_seed: the data seed of the task's demos, which every training seed shares (the demos
+        live in ``<out>/data/<task>/demos``; ``seed`` varies the policy, mixed data and world model).
     policy: the base policy's backbone (``fm`` or ``dp``).
     base_policy_rollouts: trajectories of the trained base policy added to the mixed data.
     eval_episodes, eval_seed: the evaluation episodes, shared by the base policy and DALI-R.
@@ -36,6 +38,7 @@ class PipelineConfig:
     task: str = "disassemble"
     preset: str = "cpu"
     seed: int = 0
+    demo_seed: int = 0
     device: str = "cpu"
     out: str = "outputs/pipeline"
     policy: str = "fm"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -55,3 +56,19 @@ def evaluate_checkpoints(
         }
         print(f"[evaluation] {policy.task} {name}: {result.success_rate:.1%} over {episodes} episodes", flush=True)
     return rows
+
+
+def paired_sign_test(base: list[bool], dalir: list[bool]) -> dict:
+    """Episode-paired comparison of two methods evaluated on the same episodes.
+
+    Only the discordant episodes (one method succeeds, the other fails) carry information about
+    the difference; under "no difference" each is equally likely to go either way. Returns the
+    counts ``base_only`` and ``dalir_only`` and the exact two-sided binomial (sign-test) p-value.
+    """
+    if len(base) != len(dalir):
+        raise ValueError(f"paired results need the same episodes: {len(base)} vs {len(dalir)}")
+    base_only = sum(b and not d for b, d in zip(base, dalir))
+    dalir_only = sum(d and not b for b, d in zip(base, dalir))
+    n, k = base_only + dalir_only, min(base_only, dalir_only)
+    p = min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n) if n else 1.0
+    return {"base_only": base_only, "dalir_only": dalir_only, "p_value": p}
