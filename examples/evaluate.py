@@ -4,7 +4,8 @@
     python examples/evaluate.py policy=.../checkpoint.pt world_model=.../world_model.pt episodes=100
 
 Prints a table and writes ``<out>/evaluation.json`` (rates and per-episode records) and
-``<out>/evaluation.csv`` (one row per method and episode).
+``<out>/evaluation.csv`` (one row per method and episode; DALI-R's rows also describe its choices,
+see ``evaluation.compare.decision_summary``).
 """
 
 from __future__ import annotations
@@ -46,10 +47,11 @@ def main(argv: list[str]) -> None:
     out = Path(cfg.out)
     atomic_write_text(out / "evaluation.json", json.dumps({"config": config_dict(cfg), "success": rows}, indent=1))
     table = io.StringIO()
-    writer = csv.DictWriter(table, ["method", "episode", "reset_seed", "success", "steps", "episode_return"])
+    details = sorted({key for row in rows.values() for record in row["records"] for key in record["details"]})
+    writer = csv.DictWriter(table, ["method", "episode", "reset_seed", "success", "steps", "episode_return", *details])
     writer.writeheader()
     for name, row in rows.items():
-        writer.writerows({"method": name, **record} for record in row["records"])
+        writer.writerows({"method": name, **{k: v for k, v in record.items() if k != "details"}, **record["details"]} for record in row["records"])
     atomic_write_text(out / "evaluation.csv", table.getvalue())
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.data import Source, TrajectoryDataset, collect
-from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints
+from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints, pool_decision_summaries
 from torchrl_dalir.evaluation.diagnostics import imagination_curves
 from torchrl_dalir.evaluation.plots import plot_imagination_diagnostics
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
@@ -93,6 +93,7 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
     plot = plot_imagination_diagnostics(curves, results / "imagination.png", title=f"{cfg.task}: held-out trajectories")
 
     base, ours = rows[BASE]["success_rate"], rows[DALIR]["success_rate"]
+    choices = pool_decision_summaries([record["details"] for record in rows[DALIR]["records"]])
     metrics = parts.metrics
     table = "\n".join([
         f"# DALI-R on {cfg.task} ({cfg.policy}, seed {cfg.seed}, preset {cfg.preset}, scorer target {cfg.world_model.scorer_target})",
@@ -104,6 +105,8 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
         "",
         f"Held-out scorer: Brier {metrics['brier']:.4f}, calibration error {metrics['calibration_error']:.4f}. "
         f"Held-out world-model MSE {metrics['wm_mse']:.4f} vs {metrics['no_change_mse']:.4f} for 'no change'.",
+        f"DALI-R's choices over {choices['decisions']} decisions: the clean candidate kept in {choices['clean_chosen']:.0%}; "
+        f"the chosen candidate scored {choices['chosen_margin']:.4f} above the clean one (candidate score std {choices['score_spread']:.4f}).",
         f"Diagnostics: {plot.name}",
         "",
     ])

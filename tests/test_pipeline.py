@@ -16,19 +16,24 @@ def run_example(name, args, monkeypatch):
 
 @pytest.mark.parametrize("policy", ["fm"])
 def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monkeypatch, capsys, policy):
-    args = ["preset=smoke", "task=reach", f"policy={policy}", f"out={tmp_path}", "collection.progress=false",
-            "policy_training.progress=false", "world_model.progress=false"]
-    run_example("train_dp3_wm.py", args, monkeypatch)
+    quiet = ["collection.progress=false", "policy_training.progress=false", "world_model.progress=false"]
+    args = ["preset=smoke", "task=reach", f"policy={policy}", f"out={tmp_path}", *quiet]
+    # the first run goes through the sweep: a separate process per task and seed
+    run_example("sweep.py", ["tasks=[reach]", "seeds=[0]", f"policy={policy}", "preset=smoke", f"out={tmp_path}", "jobs=1",
+                             f"threads={torch.get_num_threads()}", f"overrides=[{','.join(quiet)}]"], monkeypatch)
+    sweep = json.loads((tmp_path / "sweep.json").read_text())["runs"]
+    assert [(r["task"], r["seed"], r["exit_code"]) for r in sweep] == [("reach", 0, 0)]
+    assert "[evaluation]" in (tmp_path / "logs" / f"reach_{policy}_seed0.log").read_text()
     results = tmp_path / "results" / "reach" / f"{policy}_seed0"
     data = json.loads((results / "results.json").read_text())
     assert set(data["success"]) == {"base policy", "DALI-R"}
     assert all(len(r["records"]) == 2 for r in data["success"].values())
     assert (results / "imagination.png").stat().st_size > 0
-    assert "| + DALI-R" in (results / "results.md").read_text()
+    assert "| + DALI-R" in (results / "results.md").read_text() and "clean candidate kept in" in (results / "results.md").read_text()
     capsys.readouterr()
     run_example("train_dp3_wm.py", args, monkeypatch)
     assert capsys.readouterr().out.count("done before") == 5
-    # examples/evaluate.py on the job's checkpoints replays the job's evaluation exactly
+    # examples/evaluate.py on the job's checkpoints replays the job's evaluation exactly (same thread count)
     policy_path = tmp_path / "policies" / "reach" / f"{policy}_seed0" / "checkpoint.pt"
     world_model_path = tmp_path / "world_models" / policy / "reach" / "seed0" / "world_model.pt"
     run_example("evaluate.py", [f"policy={policy_path}", f"world_model={world_model_path}", "episodes=2", "num_candidates=4",
@@ -37,7 +42,7 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     for method in ("base policy", "DALI-R"):
         assert replay[method]["records"] == data["success"][method]["records"]
     assert (tmp_path / "evaluation" / "evaluation.csv").read_text().count("\n") == 1 + 4
-    run_example("summarize_results.py", [f"out={tmp_path}"], monkeypatch)
+    run_example("summarize_results.py", [f"out={tmp_path}"], monkeypatch)  # the sweep's summary, again
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert [(r["task"], r["policy"], r["seeds"]) for r in summary] == [("reach", policy, [0])]
     assert summary[0]["dalir"] == [data["success"]["DALI-R"]["success_rate"]]
@@ -59,3 +64,9 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     out = capsys.readouterr().out
     assert "[world_model] redo" in out and "[evaluation] redo" in out and out.count("done before") == 3
     assert len(list((tmp_path / "world_models" / policy / "reach").glob("seed0.replaced-*"))) == 1
+
+
+def test_sweep_refuses_unknown_tasks_before_running_anything(tmp_path, monkeypatch):
+    with pytest.raises(KeyError, match="unknown task 'shelf_place'"):
+        run_example("sweep.py", ["tasks=[shelf_place]", f"out={tmp_path}"], monkeypatch)
+    assert not (tmp_path / "logs").exists()

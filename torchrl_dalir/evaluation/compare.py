@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import math
 import time
+from functools import partial
 from pathlib import Path
 
 import torch
+from tensordict import TensorDictBase
 
 from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.reranking import PointDropout, RerankingActor
+from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
 
 BASE, DALIR = "base policy", "DALI-R"
 
@@ -31,7 +34,8 @@ def evaluate_checkpoints(
     with 8-of-16 receding-horizon execution on the same ``episodes`` evaluation episodes.
 
     Returns ``{"base policy": {...}, "DALI-R": {...}}``, each with ``success_rate``, ``episodes``,
-    ``seconds`` and per-episode ``records``.
+    ``seconds`` and per-episode ``records``; DALI-R's records describe its choices in ``details``
+    (:func:`decision_summary`).
     """
     from torchrl_dalir.training.policy import load_policy
 
@@ -47,7 +51,12 @@ def evaluate_checkpoints(
     for name, actor in actors.items():
         torch.manual_seed(actor_seed)
         start = time.perf_counter()
-        result = evaluate(receding_horizon(actor, *steps), policy.task, episodes, seed, progress=progress, **env_kwargs)
+        if name == DALIR:
+            actor = receding_horizon(actor, *steps, decision_keys=[CANDIDATE_SCORES, CHOSEN_CANDIDATE])
+            describe = partial(decision_summary, action_steps=policy.config.action_steps)
+        else:
+            actor, describe = receding_horizon(actor, *steps), None
+        result = evaluate(actor, policy.task, episodes, seed, progress=progress, describe=describe, **env_kwargs)
         rows[name] = {
             "success_rate": result.success_rate,
             "episodes": episodes,
@@ -72,3 +81,28 @@ def paired_sign_test(base: list[bool], dalir: list[bool]) -> dict:
     n, k = base_only + dalir_only, min(base_only, dalir_only)
     p = min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n) if n else 1.0
     return {"base_only": base_only, "dalir_only": dalir_only, "p_value": p}
+
+
+def decision_summary(rollout: TensorDictBase, action_steps: int) -> dict:
+    """DALI-R's choices over one episode (a rollout run with ``decision_keys=[CANDIDATE_SCORES,
+    CHOSEN_CANDIDATE]``): the fraction of decisions that kept the clean candidate, and the mean
+    over decisions of the clean candidate's score, the chosen one's margin over it, and the
+    spread (std) of the candidates' scores. Small margins next to the scorer's errors mean the
+    choice is close to random."""
+    decisions = rollout[..., ::action_steps]  # every step repeats its decision's values
+    scores, chosen = decisions[CANDIDATE_SCORES].float(), decisions[CHOSEN_CANDIDATE]
+    clean = scores[..., 0]
+    return {
+        "decisions": chosen.numel(),
+        "clean_chosen": (chosen == 0).float().mean().item(),
+        "clean_score": clean.mean().item(),
+        "chosen_margin": (scores.max(-1).values - clean).mean().item(),
+        "score_spread": scores.std(-1).mean().item(),
+    }
+
+
+def pool_decision_summaries(summaries: list[dict]) -> dict:
+    """:func:`decision_summary` over many episodes: means weighted by each episode's decisions."""
+    total = sum(s["decisions"] for s in summaries)
+    pooled = {key: sum(s[key] * s["decisions"] for s in summaries) / max(total, 1) for key in summaries[0] if key != "decisions"}
+    return {"decisions": total, **pooled}

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
 from functools import partial
 
 import torch
+from tensordict import TensorDictBase
 from torchrl.envs import SerialEnv
 from tqdm.auto import tqdm
 
@@ -21,6 +23,7 @@ class EpisodeRecord:
     success: bool
     steps: int  # steps taken; equals the steps to success when ``success``
     episode_return: float
+    details: dict = field(default_factory=dict)  # ``describe(rollout)`` of ``evaluate``, e.g. DALI-R's choices
 
 
 @dataclass
@@ -37,7 +40,17 @@ class EvaluationResult:
 
 
 @torch.no_grad()
-def evaluate(policy, task: str, num_episodes: int, seed: int = 0, *, env=None, progress: bool = True, **env_kwargs) -> EvaluationResult:
+def evaluate(
+    policy,
+    task: str,
+    num_episodes: int,
+    seed: int = 0,
+    *,
+    env=None,
+    progress: bool = True,
+    describe: Callable[[TensorDictBase], dict] | None = None,
+    **env_kwargs,
+) -> EvaluationResult:
     """Runs ``policy`` for ``num_episodes`` evaluation episodes and records each one.
 
     Episode ``i`` resets with :func:`torchrl_dalir.seeds.eval_episode_seed` ``(seed, i)``, so two
@@ -52,6 +65,8 @@ def evaluate(policy, task: str, num_episodes: int, seed: int = 0, *, env=None, p
         env: a batched env of size 1 to reuse (by default ``SerialEnv(1, make_env(task, **env_kwargs))``;
             batched because TorchRL's receding-horizon wrapper needs a batch dimension).
         progress: show a progress bar.
+        describe: computes extra per-episode values from the episode's rollout, kept in the
+            record's ``details`` (e.g. :func:`torchrl_dalir.evaluation.compare.decision_summary`).
     """
     env = env if env is not None else SerialEnv(1, partial(make_env, task, seed=None, **env_kwargs))
     max_steps = get_task(task).max_steps
@@ -68,6 +83,7 @@ def evaluate(policy, task: str, num_episodes: int, seed: int = 0, *, env=None, p
                 success=success,
                 steps=rollout.shape[-1],
                 episode_return=float(rollout["next", keys.REWARD].sum()),
+                details=describe(rollout) if describe is not None else {},
             )
         )
     return EvaluationResult(task=task, episodes=records)
