@@ -2,6 +2,7 @@
 
     python examples/evaluate.py policy=outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt
     python examples/evaluate.py policy=.../checkpoint.pt world_model=.../world_model.pt episodes=100
+    python examples/evaluate.py policy=... world_model=... methods=[random]   # the random-choice control
 
 Prints a table and writes ``<out>/evaluation.json`` (rates and per-episode records) and
 ``<out>/evaluation.csv`` (one row per method and episode; DALI-R's rows also describe its choices,
@@ -32,6 +33,7 @@ class Config:
     num_candidates: int = 32
     dropout: float = 0.2
     actor_seed: int = 0
+    methods: list[str] | None = None  # among base, dalir, random (DALI-R's candidates chosen at random)
     out: str = "outputs/evaluation"
 
 
@@ -39,7 +41,7 @@ def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
     rows = evaluate_checkpoints(
         cfg.policy, cfg.world_model, episodes=cfg.episodes, seed=cfg.seed, device=cfg.device,
-        num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed,
+        num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed, methods=cfg.methods,
     )
     print(f"\n{'method':12s} {'success':>8s} {'episodes':>9s} {'seconds':>8s}")
     for name, row in rows.items():

@@ -39,3 +39,12 @@ def test_decision_summary_reads_one_value_per_decision_from_a_receding_horizon_r
     assert summary["score_spread"] == pytest.approx((0.1 + 0.1 + 0.3 / 3**0.5) / 3, abs=1e-4)  # std([.1, .1, .4]) = 0.3 / sqrt(3)
     pooled = pool_decision_summaries([summary, {**summary, "decisions": 1, "clean_chosen": 1.0}])
     assert pooled["decisions"] == 4 and pooled["clean_chosen"] == pytest.approx((3 / 3 + 1.0) / 4, abs=1e-4)
+
+
+def test_evaluate_checkpoints_refuses_unknown_methods_and_reranking_without_a_world_model():
+    from torchrl_dalir.evaluation.compare import evaluate_checkpoints
+
+    with pytest.raises(ValueError, match="unknown methods"):
+        evaluate_checkpoints("policy.pt", "world_model.pt", methods=["base", "oracle"])
+    with pytest.raises(ValueError, match="need a world_model_path"):
+        evaluate_checkpoints("policy.pt", None, methods=["random"])

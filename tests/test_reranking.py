@@ -7,7 +7,13 @@ from torchrl.envs import SerialEnv
 
 from torchrl_dalir import RerankingActor, keys, make_env, receding_horizon
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
-from torchrl_dalir.reranking import CANDIDATE_SCORES, CHOSEN_CANDIDATE, GaussianObservationNoise, PointDropout
+from torchrl_dalir.reranking import (
+    CANDIDATE_SCORES,
+    CHOSEN_CANDIDATE,
+    GaussianObservationNoise,
+    PointDropout,
+    RandomCandidateActor,
+)
 
 TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, ddim_steps=2, euler_steps=2)
 
@@ -72,6 +78,21 @@ def test_actor_picks_the_best_scored_candidate_and_includes_the_clean_one(candid
     chunks = policy.sample(cond, g)
     torch.testing.assert_close(actor.score(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], chunks), scores)
     torch.testing.assert_close(out[keys.ACTION_CHUNK], chunks[torch.arange(3), chosen])
+
+
+def test_random_candidate_control_executes_one_of_dalirs_own_candidates_at_random():
+    parts = _parts()
+    obs = _observation(batch=64)
+    control = RandomCandidateActor(*parts, num_candidates=8, seed=3)(obs.clone())
+    chosen = control[CHOSEN_CANDIDATE]
+    # the same candidates as DALI-R with the same seed, replayed from the same generator stream
+    g = torch.Generator().manual_seed(3)
+    chunks = parts[0].sample(PointDropout(0.2).conditions(parts[0], obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], 8, g), g)
+    torch.testing.assert_close(control[keys.ACTION_CHUNK], chunks[torch.arange(64), chosen])
+    assert torch.equal(chosen, control[CANDIDATE_SCORES].argmax(-1))  # the random draws made the choice
+    dalir = RerankingActor(*parts, num_candidates=8, seed=3)(obs.clone())
+    assert not torch.equal(chosen, dalir[CHOSEN_CANDIDATE])
+    assert len(chosen.unique()) >= 6  # 64 uniform picks among 8 hit nearly every index
 
 
 def test_actor_is_deterministic_under_a_seed():

@@ -12,10 +12,11 @@ from tensordict import TensorDictBase
 
 from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
-from torchrl_dalir.reranking import PointDropout, RerankingActor
+from torchrl_dalir.reranking import PointDropout, RandomCandidateActor, RerankingActor
 from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
 
-BASE, DALIR = "base policy", "DALI-R"
+BASE, DALIR, RANDOM = "base policy", "DALI-R", "random candidate"
+METHODS = {"base": BASE, "dalir": DALIR, "random": RANDOM}  # short names for command lines
 
 
 def evaluate_checkpoints(
@@ -28,34 +29,43 @@ def evaluate_checkpoints(
     num_candidates: int = 32,
     dropout: float = 0.2,
     actor_seed: int = 0,
+    methods: list[str] | None = None,
     progress: bool = True,
 ) -> dict[str, dict]:
     """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` is given,
     with 8-of-16 receding-horizon execution on the same ``episodes`` evaluation episodes.
 
-    Returns ``{"base policy": {...}, "DALI-R": {...}}``, each with ``success_rate``, ``episodes``,
-    ``seconds`` and per-episode ``records``; DALI-R's records describe its choices in ``details``
-    (:func:`decision_summary`).
+    ``methods`` picks among ``"base"``, ``"dalir"`` and ``"random"`` (:class:`RandomCandidateActor`,
+    DALI-R's candidates chosen at random); by default the base policy, and DALI-R if there is a
+    world model. Returns ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with
+    ``success_rate``, ``episodes``, ``seconds`` and per-episode ``records``; the reranking
+    methods' records describe their choices in ``details`` (:func:`decision_summary`).
     """
     from torchrl_dalir.training.policy import load_policy
 
+    methods = methods if methods is not None else ["base"] + (["dalir"] if world_model_path is not None else [])
+    unknown = set(methods) - set(METHODS)
+    if unknown:
+        raise ValueError(f"unknown methods {sorted(unknown)}; choose among {sorted(METHODS)}")
+    if world_model_path is None and set(methods) - {"base"}:
+        raise ValueError(f"methods {methods} rerank candidates: they need a world_model_path")
     policy = load_policy(policy_path, device)
     steps = (policy.config.obs_steps, policy.config.action_steps)
-    actors = {BASE: policy}
-    if world_model_path is not None:
-        actors[DALIR] = RerankingActor.from_checkpoints(
-            policy_path, world_model_path, device, num_candidates=num_candidates, candidates=PointDropout(dropout), seed=actor_seed
-        )
+    reranking = {"dalir": RerankingActor, "random": RandomCandidateActor}
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}
     rows = {}
-    for name, actor in actors.items():
+    for method in methods:
         torch.manual_seed(actor_seed)
         start = time.perf_counter()
-        if name == DALIR:
-            actor = receding_horizon(actor, *steps, decision_keys=[CANDIDATE_SCORES, CHOSEN_CANDIDATE])
-            describe = partial(decision_summary, action_steps=policy.config.action_steps)
+        if method == "base":
+            actor, describe = receding_horizon(policy, *steps), None
         else:
-            actor, describe = receding_horizon(actor, *steps), None
+            chooser = reranking[method].from_checkpoints(
+                policy_path, world_model_path, device, num_candidates=num_candidates, candidates=PointDropout(dropout), seed=actor_seed
+            )
+            actor = receding_horizon(chooser, *steps, decision_keys=[CANDIDATE_SCORES, CHOSEN_CANDIDATE])
+            describe = partial(decision_summary, action_steps=policy.config.action_steps)
+        name = METHODS[method]
         result = evaluate(actor, policy.task, episodes, seed, progress=progress, describe=describe, **env_kwargs)
         rows[name] = {
             "success_rate": result.success_rate,
