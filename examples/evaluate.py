@@ -43,9 +43,9 @@ def main(argv: list[str]) -> None:
         cfg.policy, cfg.world_model, episodes=cfg.episodes, seed=cfg.seed, device=cfg.device,
         num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed, methods=cfg.methods,
     )
-    print(f"\n{'method':12s} {'success':>8s} {'episodes':>9s} {'seconds':>8s}")
+    print(f"\n{'method':16s} {'success':>8s} {'episodes':>9s} {'seconds':>8s}")
     for name, row in rows.items():
-        print(f"{name:12s} {row['success_rate']:8.1%} {row['episodes']:9d} {row['seconds']:8.1f}")
+        print(f"{name:16s} {row['success_rate']:8.1%} {row['episodes']:9d} {row['seconds']:8.1f}")
     out = Path(cfg.out)
     atomic_write_text(out / "evaluation.json", json.dumps({"config": config_dict(cfg), "success": rows}, indent=1))
     table = io.StringIO()
