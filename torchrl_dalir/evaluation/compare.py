@@ -60,8 +60,8 @@ def evaluate_checkpoints(
         if method == "base":
             actor, describe = receding_horizon(policy, *steps), None
         else:
-            chooser = reranking[method].from_checkpoints(
-                policy_path, world_model_path, device, num_candidates=num_candidates, candidates=PointDropout(dropout), seed=actor_seed
+            chooser = reranking[method].on_policy(
+                policy, world_model_path, device, num_candidates=num_candidates, candidates=PointDropout(dropout), seed=actor_seed
             )
             actor = receding_horizon(chooser, *steps, decision_keys=[CANDIDATE_SCORES, CHOSEN_CANDIDATE])
             describe = partial(decision_summary, action_steps=policy.config.action_steps)

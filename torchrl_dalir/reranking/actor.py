@@ -73,9 +73,15 @@ class RerankingActor(TensorDictModuleBase):
         """Loads a policy and the world model trained on top of it; refuses a world model of
         another task or another policy."""
         from torchrl_dalir.training.policy import load_policy
+
+        return cls.on_policy(load_policy(policy_path, device), world_model_path, device, **kwargs)
+
+    @classmethod
+    def on_policy(cls, policy: ChunkPolicy3D, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
+        """Wraps an already loaded policy with the world model trained on top of it; refuses a
+        world model of another task."""
         from torchrl_dalir.training.world_model import load_world_model
 
-        policy = load_policy(policy_path, device)
         parts = load_world_model(world_model_path, device)
         if parts.task != policy.task:
             raise ValueError(f"the world model at {world_model_path} is for task {parts.task!r}; the policy is for {policy.task!r}")
