@@ -1,5 +1,6 @@
 from functools import partial
 
+import numpy as np
 import pytest
 import torch
 from conftest import SHORT_REACH
@@ -71,6 +72,31 @@ def test_step_limit_truncates():
     rollout = env.rollout(100, break_when_any_done=True)  # random actions do not reach the goal
     assert len(rollout) == SHORT_REACH.max_steps
     assert rollout["next", keys.TRUNCATED][-1].item()
+
+
+def test_simulator_state_replays_an_episode_exactly():
+    from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+
+    env = PointCloudObservation(make_simulator(SHORT_REACH), SHORT_REACH, num_points=64)
+    env.reset(seed=3)
+    rng = np.random.default_rng(0)
+    for action in rng.uniform(-1, 1, (SHORT_REACH.max_steps - 4, 4)):
+        env.step(action)
+    state = env.get_state()
+    actions = rng.uniform(-1, 1, (4, 4))
+
+    def play():
+        return [env.step(action) for action in actions]
+
+    first = play()  # the last of these hits the step limit
+    env.set_state(state)
+    second = play()
+    assert first[-1][3] and not any(step[3] for step in first[:-1])
+    for a, b in zip(first, second):
+        assert all(np.array_equal(a[0][key], b[0][key]) for key in a[0])
+        assert a[1:4] == b[1:4]
+    assert not np.array_equal(first[0][0][keys.POINT_CLOUD], first[-1][0][keys.POINT_CLOUD])
+    env.close()
 
 
 def test_serial_env_of_point_cloud_envs():

@@ -42,6 +42,15 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     for method in ("base policy", "DALI-R"):
         assert replay[method]["records"] == data["success"][method]["records"]
     assert (tmp_path / "evaluation" / "evaluation.csv").read_text().count("\n") == 1 + 4
+    # the candidates' imagined against their real outcomes, on the same checkpoints
+    diagnosis = tmp_path / "candidate_outcomes"
+    run_example("diagnose_reranking.py", [f"policy={policy_path}", f"world_model={world_model_path}", "episodes=1", "decisions=2",
+                                          "num_candidates=4", f"out={diagnosis}"], monkeypatch)
+    outcomes = json.loads((diagnosis / "candidate_outcomes.json").read_text())
+    assert outcomes["summary"]["decisions"] == 2 and [len(r["real_score"]) for r in outcomes["records"]] == [4, 4]
+    assert (diagnosis / "candidate_outcomes.png").stat().st_size > 0
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        run_example("diagnose_reranking.py", [f"policy={tmp_path / 'missing.pt'}", f"world_model={world_model_path}"], monkeypatch)
     run_example("summarize_results.py", [f"out={tmp_path}"], monkeypatch)  # the sweep's summary, again
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert [(r["task"], r["policy"], r["seeds"]) for r in summary] == [("reach", policy, [0])]

@@ -6,6 +6,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import SerialEnv
 
 from torchrl_dalir import RerankingActor, keys, make_env, receding_horizon
+from torchrl_dalir.evaluation.candidate_outcomes import candidate_outcomes, summarize_candidate_outcomes
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.reranking import (
     CANDIDATE_SCORES,
@@ -134,3 +135,34 @@ def test_actor_runs_8_of_16_in_rollout_and_collector():
     collector = Collector(env, actor, frames_per_batch=8, total_frames=8)
     assert next(iter(collector))[keys.ACTION].shape[-1] == 4
     collector.shutdown()
+
+
+def test_candidate_outcomes_try_every_candidate_from_the_same_state():
+    from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+    from torchrl_dalir.seeds import eval_episode_seed
+
+    parts = _parts()
+    parts[0].task, parts[0].num_points = "reach", 40
+    records = candidate_outcomes(RerankingActor(*parts, num_candidates=4, seed=3), SHORT_REACH, episodes=1, decisions=2, progress=False)
+    assert [r["decision"] for r in records] == [0, 1]
+    first = records[0]
+    assert len(first["imagined_score"]) == len(first["real_score"]) == len(first["success"]) == 4
+    assert first["chosen"] == max(range(4), key=first["imagined_score"].__getitem__)
+    # Each candidate's real outcome equals running its actions in a fresh episode: the saved state
+    # is restored exactly between candidates.
+    actor = RerankingActor(*parts, num_candidates=4, seed=3)
+    env = PointCloudObservation(make_simulator(SHORT_REACH), SHORT_REACH, num_points=40)
+    observation, _ = env.reset(seed=eval_episode_seed(0, 0))
+    cloud = torch.as_tensor(observation[keys.POINT_CLOUD]).expand(1, 2, -1, -1)
+    agent_pos = torch.as_tensor(observation[keys.AGENT_POS]).expand(1, 2, -1)
+    chunks, scores = actor.propose(cloud, agent_pos)
+    assert torch.allclose(scores[0], torch.tensor(first["imagined_score"]))
+    for k in (0, 1, 3):
+        env.reset(seed=eval_episode_seed(0, 0))
+        for action in chunks[0, k, 1:9].numpy():
+            observation, *_ = env.step(action)
+        real = parts[1](torch.as_tensor(observation[keys.POINT_CLOUD]), torch.as_tensor(observation[keys.AGENT_POS]))
+        assert torch.isclose(torch.sigmoid(parts[3](real)), torch.tensor(first["real_score"][k]), atol=1e-6)
+    env.close()
+    summary = summarize_candidate_outcomes(records)
+    assert summary["decisions"] == 2 and 0.0 <= summary["mean_pick_percentile"] <= 1.0

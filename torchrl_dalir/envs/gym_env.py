@@ -6,7 +6,11 @@ the success flag's type, the early termination at the first success, and the dep
 
 from __future__ import annotations
 
+import copy
+from dataclasses import dataclass
+
 import gymnasium as gym
+import mujoco
 import numpy as np
 
 from torchrl_dalir import keys
@@ -45,6 +49,28 @@ def make_simulator(task: TaskSpec) -> gym.Env:
 
     gym.register_envs(gymnasium_robotics)
     return gym.make(task.env_id, max_episode_steps=task.max_steps)
+
+
+_PHYSICS_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # qpos, qvel, controls, mocap, warm start, ...
+_STEP_BOOKKEEPING = ("curr_path_length", "_prev_obs", "_last_stable_obs")  # MetaWorld's per-step attributes
+
+
+@dataclass
+class SimulatorState:
+    """What :meth:`PointCloudObservation.get_state` saves: MuJoCo's integration state, the
+    simulator's own per-step attributes and the step limit's counter."""
+
+    physics: np.ndarray
+    attributes: dict
+    elapsed_steps: int | None
+
+
+def _time_limit(env: gym.Env) -> gym.wrappers.TimeLimit | None:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, gym.wrappers.TimeLimit):
+            return env
+        env = env.env
+    return None
 
 
 class PointCloudObservation(gym.Wrapper):
@@ -95,6 +121,27 @@ class PointCloudObservation(gym.Wrapper):
         success = bool(info.get("success", False))
         info = {keys.SUCCESS: np.array([success])}
         return self._observation(state), float(reward), terminated or success, truncated, info
+
+    def get_state(self) -> SimulatorState:
+        """A snapshot of the episode, so that after :meth:`set_state` the same actions give the
+        same observations (to try several action chunks from one state)."""
+        raw = self.env.unwrapped
+        physics = np.empty(mujoco.mj_stateSize(raw.model, _PHYSICS_STATE))
+        mujoco.mj_getState(raw.model, raw.data, physics, _PHYSICS_STATE)
+        attributes = {name: copy.deepcopy(getattr(raw, name)) for name in _STEP_BOOKKEEPING if hasattr(raw, name)}
+        limit = _time_limit(self.env)
+        return SimulatorState(physics, attributes, limit._elapsed_steps if limit is not None else None)
+
+    def set_state(self, state: SimulatorState) -> None:
+        """Returns the episode to a :meth:`get_state` snapshot."""
+        raw = self.env.unwrapped
+        mujoco.mj_setState(raw.model, raw.data, state.physics, _PHYSICS_STATE)
+        mujoco.mj_forward(raw.model, raw.data)
+        for name, value in state.attributes.items():
+            setattr(raw, name, copy.deepcopy(value))
+        limit = _time_limit(self.env)
+        if limit is not None:
+            limit._elapsed_steps = state.elapsed_steps
 
     def close(self):
         if self._camera is not None:

@@ -88,3 +88,28 @@ def plot_success_by_task(table: list[dict], path: str | Path, title: str = "") -
     ax.legend(loc="upper right", fontsize=8)
     ax.set_title(title)
     return _save(fig, path)
+
+
+def plot_candidate_outcomes(records: list[dict], path: str | Path, title: str = "") -> Path:
+    """Imagined against real outcomes of DALI-R's candidates (records of
+    :func:`~torchrl_dalir.evaluation.candidate_outcomes.candidate_outcomes`): (left) every
+    candidate's imagined and real score, each minus its decision's mean, so that only the
+    within-decision ordering that reranking uses remains; (right) the per-decision rank
+    correlations."""
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8), dpi=80)
+    imagined = np.concatenate([np.asarray(r["imagined_score"]) - np.mean(r["imagined_score"]) for r in records])
+    real = np.concatenate([np.asarray(r["real_score"]) - np.mean(r["real_score"]) for r in records])
+    left.scatter(imagined, real, s=4, alpha=0.4)
+    left.axhline(0, color="k", lw=0.5)
+    left.axvline(0, color="k", lw=0.5)
+    left.set_xlabel("imagined score - decision mean")
+    left.set_ylabel("real score - decision mean")
+    left.set_title("candidates within a decision")
+    correlations = [r["rank_correlation"] for r in records if np.isfinite(r["rank_correlation"])]
+    right.hist(correlations, bins=np.linspace(-1, 1, 21))
+    right.axvline(0, color="k", lw=0.5)
+    right.set_xlabel("Spearman correlation, imagined vs real score")
+    right.set_ylabel("decisions")
+    right.set_title("does imagination order the candidates?")
+    fig.suptitle(title)
+    return _save(fig, path)

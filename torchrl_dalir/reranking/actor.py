@@ -88,13 +88,26 @@ class RerankingActor(TensorDictModuleBase):
         return cls(policy, parts.encoder, parts.world_model, parts.scorer, **kwargs)
 
     @torch.no_grad()
-    def score(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
-        """Completion probabilities ``[B, K]`` of chunks ``[B, K, H, A]`` from observations ``[B, To, ...]``."""
+    def imagine(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
+        """Imagined latents ``[B, K, L]`` after the executed part of chunks ``[B, K, H, A]``,
+        from observations ``[B, To, ...]``."""
         latent = self.encoder(cloud[:, -1], agent_pos[:, -1])  # s_t from the current observation
         start = self.policy.config.obs_steps - 1
         executed = chunks[..., start : start + self.world_model.action_steps, :]
-        imagined = self.world_model.imagine(latent.unsqueeze(1).expand(-1, chunks.shape[1], -1), executed)
-        return torch.sigmoid(self.scorer(imagined))
+        return self.world_model.imagine(latent.unsqueeze(1).expand(-1, chunks.shape[1], -1), executed)
+
+    @torch.no_grad()
+    def score(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
+        """Completion probabilities ``[B, K]`` of chunks ``[B, K, H, A]`` from observations ``[B, To, ...]``."""
+        return torch.sigmoid(self.scorer(self.imagine(cloud, agent_pos, chunks)))
+
+    @torch.no_grad()
+    def propose(self, cloud: torch.Tensor, agent_pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every candidate chunk ``[B, K, H, A]`` and its score ``[B, K]`` for observations
+        ``[B, To, ...]``; candidate 0 comes from the clean observation."""
+        cond = self.candidates.conditions(self.policy, cloud, agent_pos, self.num_candidates, self.generator)
+        chunks = self.policy.sample(cond, self.generator)
+        return chunks, self.score(cloud, agent_pos, chunks)
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -102,9 +115,7 @@ class RerankingActor(TensorDictModuleBase):
         self.policy.check_observation(cloud, agent_pos)
         batch = cloud.shape[:-3]
         cloud, agent_pos = cloud.reshape(-1, *cloud.shape[-3:]), agent_pos.reshape(-1, *agent_pos.shape[-2:])
-        cond = self.candidates.conditions(self.policy, cloud, agent_pos, self.num_candidates, self.generator)
-        chunks = self.policy.sample(cond, self.generator)  # [B, K, H, A]
-        scores = self.score(cloud, agent_pos, chunks)
+        chunks, scores = self.propose(cloud, agent_pos)
         best = scores.argmax(-1)
         chosen = chunks[torch.arange(len(best)), best]
         tensordict.set(keys.ACTION_CHUNK, chosen.reshape(*batch, *chosen.shape[1:]))

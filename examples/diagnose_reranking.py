@@ -1,0 +1,64 @@
+"""Does DALI-R's imagination order its candidates the way the simulator does?
+
+    python examples/diagnose_reranking.py policy=.../checkpoint.pt world_model=.../world_model.pt
+
+At the first ``decisions`` decisions of ``episodes`` evaluation episodes (along the base policy),
+runs every candidate's executed actions in the simulator from the same state and compares the
+scorer's rating of the imagined and of the real outcome
+(:func:`torchrl_dalir.evaluation.candidate_outcomes.candidate_outcomes`). Prints a summary and
+writes ``<out>/candidate_outcomes.json`` and ``<out>/candidate_outcomes.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from torchrl_dalir import RerankingActor
+from torchrl_dalir.config import config_dict, parse_config
+from torchrl_dalir.evaluation.candidate_outcomes import candidate_outcomes, summarize_candidate_outcomes
+from torchrl_dalir.evaluation.plots import plot_candidate_outcomes
+from torchrl_dalir.reranking import PointDropout
+from torchrl_dalir.utils import atomic_write_text
+
+
+@dataclass
+class Config:
+    policy: str = "outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"
+    world_model: str = "outputs/pipeline/world_models/fm/disassemble/seed0/world_model.pt"
+    episodes: int = 5
+    decisions: int = 10  # the first decisions of each episode
+    seed: int = 0  # the evaluation seed (episodes as in examples/evaluate.py)
+    num_candidates: int = 32
+    dropout: float = 0.2
+    actor_seed: int = 0
+    device: str = "cpu"
+    out: str = "outputs/candidate_outcomes"
+
+
+def main(argv: list[str]) -> dict:
+    cfg: Config = parse_config(Config, argv)
+    for path in (cfg.policy, cfg.world_model):
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"no checkpoint at {path}")
+    torch.manual_seed(cfg.actor_seed)
+    actor = RerankingActor.from_checkpoints(
+        cfg.policy, cfg.world_model, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.actor_seed
+    )
+    task = actor.policy.task
+    records = candidate_outcomes(actor, task, episodes=cfg.episodes, decisions=cfg.decisions, seed=cfg.seed)
+    summary = summarize_candidate_outcomes(records)
+    for key, value in summary.items():
+        print(f"{key:28s} {value:.4g}" if isinstance(value, float) else f"{key:28s} {value}")
+    out = Path(cfg.out)
+    atomic_write_text(out / "candidate_outcomes.json", json.dumps({"config": config_dict(cfg), "summary": summary, "records": records}, indent=1))
+    plot_candidate_outcomes(records, out / "candidate_outcomes.png", title=f"{task}: DALI-R's candidates, imagined vs real")
+    return summary
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,128 @@
+"""Do imagined outcomes rank DALI-R's candidates the way their real outcomes do?
+
+At decisions along base-policy episodes, every candidate's executed actions are run in the
+simulator from the same saved state. The scorer then rates the real observation that follows,
+next to its rating of the imagined latent. Within one decision, the rank correlation of the two
+says whether the world model orders the candidates as the simulator would; the world model's
+error, next to how far the candidates' real outcomes lie apart, says whether it can tell them
+apart at all. (The scorer's own accuracy on real states is the held-out Brier score's business.)
+"""
+
+from __future__ import annotations
+
+from statistics import median
+
+import numpy as np
+import torch
+from scipy.stats import spearmanr
+from tqdm.auto import tqdm
+
+from torchrl_dalir import keys
+from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+from torchrl_dalir.envs.tasks import TaskSpec, get_task
+from torchrl_dalir.reranking.actor import RerankingActor
+from torchrl_dalir.seeds import eval_episode_seed
+
+
+def _stack(observations: list[dict], device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    cloud = torch.as_tensor(np.stack([o[keys.POINT_CLOUD] for o in observations]), device=device)
+    agent_pos = torch.as_tensor(np.stack([o[keys.AGENT_POS] for o in observations]), device=device)
+    return cloud, agent_pos
+
+
+def _execute(env: PointCloudObservation, actions: np.ndarray) -> tuple[list[dict], bool, bool]:
+    """Steps ``actions`` until the episode ends; the observations, success, and whether it ended."""
+    observations, success, ended = [], False, False
+    for action in actions:
+        observation, _, terminated, truncated, info = env.step(action)
+        observations.append(observation)
+        success, ended = bool(info[keys.SUCCESS][0]), terminated or truncated
+        if ended:
+            break
+    return observations, success, ended
+
+
+@torch.no_grad()
+def candidate_outcomes(actor: RerankingActor, task: str | TaskSpec, *, episodes: int = 5, decisions: int = 10, seed: int = 0, progress: bool = True) -> list[dict]:
+    """Imagined against real outcomes of every candidate at the first ``decisions`` decisions of
+    ``episodes`` evaluation episodes (seeded like :func:`~torchrl_dalir.evaluation.evaluate`).
+
+    The episode goes on with the clean candidate (index 0), i.e. along the base policy. Returns
+    one record per decision: ``imagined_score`` and ``real_score`` (the scorer on the imagined and
+    on the real latent after the executed actions, ``[K]`` each), ``success`` (the candidate
+    succeeded within its actions), ``chosen`` (DALI-R's pick), ``rank_correlation`` (Spearman,
+    across candidates), ``imagination_error`` (mean L2 between imagined and real latents) and
+    ``real_spread`` (mean L2 of the real latents from their mean).
+    """
+    policy = actor.policy
+    spec = get_task(task)
+    if spec.name != policy.task:
+        raise ValueError(f"the policy was trained on {policy.task!r}, not {spec.name!r}")
+    obs_steps, action_steps = policy.config.obs_steps, policy.config.action_steps
+    device = next(policy.parameters()).device
+    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points)
+    records = []
+    try:
+        for episode in tqdm(range(episodes), desc=f"candidate outcomes {spec.name}", disable=not progress, leave=False):
+            observation, _ = env.reset(seed=eval_episode_seed(seed, episode))
+            history = [observation] * obs_steps
+            for decision in range(decisions):
+                cloud, agent_pos = (x[None] for x in _stack(history, device))
+                chunks, scores = actor.propose(cloud, agent_pos)
+                imagined = actor.imagine(cloud, agent_pos, chunks)[0]
+                executed = chunks[0, :, obs_steps - 1 : obs_steps - 1 + action_steps].cpu().numpy()
+                start = env.get_state()
+                outcomes = []
+                for k in range(len(executed) - 1, -1, -1):  # the clean candidate last: the episode goes on from it
+                    if k != len(executed) - 1:
+                        env.set_state(start)
+                    outcomes.append(_execute(env, executed[k]))
+                outcomes.reverse()
+                real = actor.encoder(*_stack([o[-1] for o, _, _ in outcomes], device))
+                real_score = torch.sigmoid(actor.scorer(real))
+                scores = scores.cpu()
+                records.append(
+                    {
+                        "episode": episode,
+                        "decision": decision,
+                        "imagined_score": scores[0].tolist(),
+                        "real_score": real_score.tolist(),
+                        "success": [success for _, success, _ in outcomes],
+                        "chosen": int(scores[0].argmax()),
+                        "rank_correlation": float(spearmanr(scores[0].numpy(), real_score.cpu().numpy()).statistic),
+                        "imagination_error": float((imagined - real).norm(dim=-1).mean()),
+                        "real_spread": float((real - real.mean(0)).norm(dim=-1).mean()),
+                    }
+                )
+                clean_observations, _, ended = outcomes[0]
+                if ended:
+                    break
+                history = (history + clean_observations)[-obs_steps:]
+    finally:
+        env.close()
+    return records
+
+
+def summarize_candidate_outcomes(records: list[dict]) -> dict:
+    """Medians over decisions; how DALI-R's pick ranks among the candidates' real scores; and, at
+    decisions where only some candidates finish the task within their actions, how often the pick
+    does against the candidates' average (chance)."""
+    correlations = [r["rank_correlation"] for r in records if np.isfinite(r["rank_correlation"])]
+    # The pick's percentile among the other candidates' real scores: 1 best, 0 worst, 0.5 chance.
+    percentiles = [
+        sum(s < r["real_score"][r["chosen"]] for s in r["real_score"]) / max(len(r["real_score"]) - 1, 1) for r in records
+    ]
+    # Decisions where some candidates, not all, finish the task within their actions.
+    split = [r for r in records if 0 < sum(r["success"]) < len(r["success"])]
+    return {
+        "decisions": len(records),
+        "median_rank_correlation": median(correlations) if correlations else float("nan"),
+        "median_imagined_std": median(float(np.std(r["imagined_score"])) for r in records),
+        "median_real_std": median(float(np.std(r["real_score"])) for r in records),
+        "median_error_over_spread": median(r["imagination_error"] / max(r["real_spread"], 1e-12) for r in records),
+        "mean_pick_percentile": float(np.mean(percentiles)),
+        "pick_real_score_gain": float(np.mean([r["real_score"][r["chosen"]] - np.mean(r["real_score"]) for r in records])),
+        "decisions_some_candidates_succeed": len(split),
+        "pick_succeeds_there": float(np.mean([r["success"][r["chosen"]] for r in split])) if split else float("nan"),
+        "candidates_succeed_there": float(np.mean([np.mean(r["success"]) for r in split])) if split else float("nan"),
+    }
