@@ -42,9 +42,6 @@ class Config:
 
 def main(argv: list[str]) -> dict:
     cfg: Config = parse_config(Config, argv)
-    for path in (cfg.policy, cfg.world_model):
-        if not Path(path).is_file():
-            raise FileNotFoundError(f"no checkpoint at {path}")
     torch.manual_seed(cfg.actor_seed)
     actor = RerankingActor.from_checkpoints(
         cfg.policy, cfg.world_model, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.actor_seed

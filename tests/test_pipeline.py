@@ -49,7 +49,7 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     outcomes = json.loads((diagnosis / "candidate_outcomes.json").read_text())
     assert outcomes["summary"]["decisions"] == 2 and [len(r["real_score"]) for r in outcomes["records"]] == [4, 4]
     assert (diagnosis / "candidate_outcomes.png").stat().st_size > 0
-    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+    with pytest.raises(FileNotFoundError, match="no policy checkpoint at"):
         run_example("diagnose_reranking.py", [f"policy={tmp_path / 'missing.pt'}", f"world_model={world_model_path}"], monkeypatch)
     run_example("summarize_results.py", [f"out={tmp_path}"], monkeypatch)  # the sweep's summary, again
     summary = json.loads((tmp_path / "summary.json").read_text())

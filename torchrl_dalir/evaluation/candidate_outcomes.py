@@ -71,13 +71,10 @@ def candidate_outcomes(actor: RerankingActor, task: str | TaskSpec, *, episodes:
                 chunks, scores = actor.propose(cloud, agent_pos)
                 imagined = actor.imagine(cloud, agent_pos, chunks)[0]
                 executed = chunks[0, :, obs_steps - 1 : obs_steps - 1 + action_steps].cpu().numpy()
-                start = env.get_state()
-                outcomes = []
-                for k in range(len(executed) - 1, -1, -1):  # the clean candidate last: the episode goes on from it
-                    if k != len(executed) - 1:
-                        env.set_state(start)
-                    outcomes.append(_execute(env, executed[k]))
-                outcomes.reverse()
+                start, outcomes = env.get_state(), [None] * len(executed)
+                for k in [*range(1, len(executed)), 0]:  # the clean candidate last: the episode goes on from it
+                    env.set_state(start)
+                    outcomes[k] = _execute(env, executed[k])
                 real = actor.encoder(*_stack([o[-1] for o, _, _ in outcomes], device))
                 real_score = torch.sigmoid(actor.scorer(real))
                 scores = scores.cpu()
