@@ -1,11 +1,15 @@
 """Does DALI-R's imagination order its candidates the way the simulator does?
 
     python examples/diagnose_reranking.py policy=.../checkpoint.pt world_model=.../world_model.pt
+    python examples/diagnose_reranking.py policy=... world_model=... follow_through=true decisions=25 stride=5
 
 At the first ``decisions`` decisions of ``episodes`` evaluation episodes (along the base policy),
 runs every candidate's executed actions in the simulator from the same state and compares the
 scorer's rating of the imagined and of the real outcome
-(:func:`torchrl_dalir.evaluation.candidate_outcomes.candidate_outcomes`). Prints a summary and
+(:func:`torchrl_dalir.evaluation.candidate_outcomes.candidate_outcomes`). ``follow_through=true``
+also continues each candidate with the base policy to the episode's end, to see whether the
+scorer prefers the candidates that go on to succeed (slow: one rest-of-episode rollout per
+candidate; use ``stride`` to spread fewer decisions over whole episodes). Prints a summary and
 writes ``<out>/candidate_outcomes.json`` and ``<out>/candidate_outcomes.png``.
 """
 
@@ -32,6 +36,8 @@ class Config:
     world_model: str = "outputs/pipeline/world_models/fm/disassemble/seed0/world_model.pt"
     episodes: int = 5
     decisions: int = 10  # the first decisions of each episode
+    stride: int = 1  # analyse every stride-th of them (the others just follow the base policy)
+    follow_through: bool = False  # continue every candidate with the base policy to the episode's end
     seed: int = 0  # the evaluation seed (episodes as in examples/evaluate.py)
     num_candidates: int = 32
     dropout: float = 0.2
@@ -47,7 +53,9 @@ def main(argv: list[str]) -> dict:
         cfg.policy, cfg.world_model, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.actor_seed
     )
     task = actor.policy.task
-    records = candidate_outcomes(actor, task, episodes=cfg.episodes, decisions=cfg.decisions, seed=cfg.seed)
+    records = candidate_outcomes(
+        actor, task, episodes=cfg.episodes, decisions=cfg.decisions, stride=cfg.stride, follow_through=cfg.follow_through, seed=cfg.seed
+    )
     summary = summarize_candidate_outcomes(records)
     for key, value in summary.items():
         print(f"{key:28s} {value:.4g}" if isinstance(value, float) else f"{key:28s} {value}")

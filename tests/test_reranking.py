@@ -1,3 +1,5 @@
+import dataclasses
+
 import pytest
 import torch
 from conftest import SHORT_REACH
@@ -166,3 +168,38 @@ def test_candidate_outcomes_try_every_candidate_from_the_same_state():
     env.close()
     summary = summarize_candidate_outcomes(records)
     assert summary["decisions"] == 2 and 0.0 <= summary["mean_pick_percentile"] <= 1.0
+
+
+def test_candidate_outcomes_follow_through_every_stride_th_decision():
+    parts = _parts()
+    parts[0].task, parts[0].num_points = "reach", 40
+    task = dataclasses.replace(SHORT_REACH, max_steps=40)  # 5 decisions
+
+    def run():
+        actor = RerankingActor(*parts, num_candidates=3, seed=4)
+        return candidate_outcomes(actor, task, episodes=1, decisions=5, stride=2, follow_through=True, progress=False)
+
+    records = run()
+    assert [r["decision"] for r in records] == [0, 2, 4]
+    for record in records:
+        assert len(record["final_success"]) == 3
+        # a candidate that finishes within its own actions has finished the episode too
+        assert all(final for final, now in zip(record["final_success"], record["success"]) if now)
+    assert run() == records  # seeded: the follow-through rollouts replay exactly
+    assert "final_success" not in candidate_outcomes(RerankingActor(*parts, num_candidates=3, seed=4), task, episodes=1, decisions=1, progress=False)[0]
+
+
+def test_follow_through_summary_exact_values():
+    record = {"imagined_score": [0.9, 0.1, 0.5, 0.2], "real_score": [0.3, 0.2, 0.1, 0.4], "success": [False] * 4,
+              "chosen": 0, "rank_correlation": 0.0, "imagination_error": 1.0, "real_spread": 1.0}
+    split = {**record, "final_success": [True, False, False, True]}
+    none = {**record, "final_success": [False, False, False, False]}
+    summary = summarize_candidate_outcomes([split, none])
+    assert summary["final_success_clean"] == 0.5 and summary["final_success_pick"] == 0.5
+    assert summary["final_success_average_candidate"] == 0.25
+    assert summary["final_success_real_best"] == 0.5  # real-score argmax: candidate 3, then 3 again
+    assert summary["decisions_split_by_final_success"] == 1
+    # successes (0.9, 0.2) against failures (0.1, 0.5): 3 of 4 pairs ordered right
+    assert summary["imagined_score_auc_there"] == 0.75
+    assert summary["real_score_auc_there"] == 1.0  # (0.3, 0.4) against (0.2, 0.1)
+    assert "final_success_pick" not in summarize_candidate_outcomes([record])

@@ -6,6 +6,10 @@ next to its rating of the imagined latent. Within one decision, the rank correla
 says whether the world model orders the candidates as the simulator would; the world model's
 error, next to how far the candidates' real outcomes lie apart, says whether it can tell them
 apart at all. (The scorer's own accuracy on real states is the held-out Brier score's business.)
+
+With ``follow_through``, every candidate's episode then goes on with the base policy to its end,
+which says whether the scorer's preferences (on imagined or on real outcomes) point at the
+candidates that go on to succeed: the question behind a task where reranking loses.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ from statistics import median
 
 import numpy as np
 import torch
-from scipy.stats import spearmanr
+from scipy.stats import mannwhitneyu, spearmanr
 from tqdm.auto import tqdm
 
 from torchrl_dalir import keys
@@ -42,24 +46,57 @@ def _execute(env: PointCloudObservation, actions: np.ndarray) -> tuple[list[dict
     return observations, success, ended
 
 
+def _base_chunk(policy, history: list[dict], generator: torch.Generator, device: torch.device) -> np.ndarray:
+    """The executed actions of one base-policy chunk (clean observations) for ``history``."""
+    steps = policy.config.obs_steps
+    cloud, agent_pos = (x[None] for x in _stack(history[-steps:], device))
+    chunk = policy.sample(policy.encode(cloud, agent_pos), generator)[0]
+    return chunk[steps - 1 : steps - 1 + policy.config.action_steps].cpu().numpy()
+
+
+def _follow_through(env: PointCloudObservation, policy, history: list[dict], generator: torch.Generator, device: torch.device) -> bool:
+    """Runs the base policy from ``history`` until the episode ends; whether it succeeded."""
+    while True:
+        observations, success, ended = _execute(env, _base_chunk(policy, history, generator, device))
+        if ended:
+            return success
+        history = history + observations
+
+
 @torch.no_grad()
-def candidate_outcomes(actor: RerankingActor, task: str | TaskSpec, *, episodes: int = 5, decisions: int = 10, seed: int = 0, progress: bool = True) -> list[dict]:
-    """Imagined against real outcomes of every candidate at the first ``decisions`` decisions of
-    ``episodes`` evaluation episodes (seeded like :func:`~torchrl_dalir.evaluation.evaluate`).
+def candidate_outcomes(
+    actor: RerankingActor,
+    task: str | TaskSpec,
+    *,
+    episodes: int = 5,
+    decisions: int = 10,
+    stride: int = 1,
+    follow_through: bool = False,
+    seed: int = 0,
+    progress: bool = True,
+) -> list[dict]:
+    """Imagined against real outcomes of every candidate at every ``stride``-th of the first
+    ``decisions`` decisions of ``episodes`` evaluation episodes (seeded like
+    :func:`~torchrl_dalir.evaluation.evaluate`).
 
     The episode goes on with the clean candidate (index 0), i.e. along the base policy. Returns
     one record per decision: ``imagined_score`` and ``real_score`` (the scorer on the imagined and
     on the real latent after the executed actions, ``[K]`` each), ``success`` (the candidate
     succeeded within its actions), ``chosen`` (DALI-R's pick), ``rank_correlation`` (Spearman,
     across candidates), ``imagination_error`` (mean L2 between imagined and real latents) and
-    ``real_spread`` (mean L2 of the real latents from their mean).
+    ``real_spread`` (mean L2 of the real latents from their mean). With ``follow_through``,
+    ``final_success`` ``[K]`` says whether each candidate's episode, continued with the base policy
+    (its own seeded noise), succeeded by its end; it costs a rest-of-episode rollout per candidate.
     """
     policy = actor.policy
     spec = get_task(task)
     if spec.name != policy.task:
         raise ValueError(f"the policy was trained on {policy.task!r}, not {spec.name!r}")
-    obs_steps, action_steps = policy.config.obs_steps, policy.config.action_steps
+    if stride < 1:
+        raise ValueError(f"stride must be at least 1, got {stride}")
+    obs_steps = policy.config.obs_steps
     device = next(policy.parameters()).device
+    base_generator = torch.Generator().manual_seed(actor.seed + 1)  # skipped decisions and follow-throughs
     env = PointCloudObservation(make_simulator(spec), spec, policy.num_points)
     records = []
     try:
@@ -67,37 +104,52 @@ def candidate_outcomes(actor: RerankingActor, task: str | TaskSpec, *, episodes:
             observation, _ = env.reset(seed=eval_episode_seed(seed, episode))
             history = [observation] * obs_steps
             for decision in range(decisions):
-                cloud, agent_pos = (x[None] for x in _stack(history, device))
-                chunks, scores = actor.propose(cloud, agent_pos)
-                imagined = actor.imagine(cloud, agent_pos, chunks)[0]
-                executed = chunks[0, :, obs_steps - 1 : obs_steps - 1 + action_steps].cpu().numpy()
-                start, outcomes = env.get_state(), [None] * len(executed)
-                for k in [*range(1, len(executed)), 0]:  # the clean candidate last: the episode goes on from it
-                    env.set_state(start)
-                    outcomes[k] = _execute(env, executed[k])
-                real = actor.encoder(*_stack([o[-1] for o, _, _ in outcomes], device))
-                real_score = torch.sigmoid(actor.scorer(real))
-                scores = scores.cpu()
-                records.append(
-                    {
-                        "episode": episode,
-                        "decision": decision,
-                        "imagined_score": scores[0].tolist(),
-                        "real_score": real_score.tolist(),
-                        "success": [success for _, success, _ in outcomes],
-                        "chosen": int(scores[0].argmax()),
-                        "rank_correlation": float(spearmanr(scores[0].numpy(), real_score.cpu().numpy()).statistic),
-                        "imagination_error": float((imagined - real).norm(dim=-1).mean()),
-                        "real_spread": float((real - real.mean(0)).norm(dim=-1).mean()),
-                    }
-                )
-                clean_observations, _, ended = outcomes[0]
+                if decision % stride:
+                    clean_observations, _, ended = _execute(env, _base_chunk(policy, history, base_generator, device))
+                else:
+                    record, clean_observations, ended = _try_candidates(actor, env, history, base_generator, follow_through, device)
+                    records.append({"episode": episode, "decision": decision, **record})
                 if ended:
                     break
                 history = (history + clean_observations)[-obs_steps:]
     finally:
         env.close()
     return records
+
+
+def _try_candidates(actor: RerankingActor, env: PointCloudObservation, history: list[dict], base_generator, follow_through: bool, device):
+    """One decision's record; leaves ``env`` after the clean candidate's actions."""
+    obs_steps, action_steps = actor.policy.config.obs_steps, actor.policy.config.action_steps
+    cloud, agent_pos = (x[None] for x in _stack(history, device))
+    chunks, scores = actor.propose(cloud, agent_pos)
+    imagined = actor.imagine(cloud, agent_pos, chunks)[0]
+    executed = chunks[0, :, obs_steps - 1 : obs_steps - 1 + action_steps].cpu().numpy()
+    start, outcomes, final_success = env.get_state(), [], []
+    for k, actions in enumerate(executed):
+        env.set_state(start)
+        observations, success, ended = _execute(env, actions)
+        outcomes.append((observations, success, ended))
+        if k == 0:
+            after_clean = env.get_state()
+        if follow_through:
+            final_success.append(success if ended else _follow_through(env, actor.policy, history + observations, base_generator, device))
+    env.set_state(after_clean)
+    real = actor.encoder(*_stack([o[-1] for o, _, _ in outcomes], device))
+    real_score = torch.sigmoid(actor.scorer(real))
+    scores = scores[0].cpu()
+    record = {
+        "imagined_score": scores.tolist(),
+        "real_score": real_score.tolist(),
+        "success": [success for _, success, _ in outcomes],
+        "chosen": int(scores.argmax()),
+        "rank_correlation": float(spearmanr(scores.numpy(), real_score.cpu().numpy()).statistic),
+        "imagination_error": float((imagined - real).norm(dim=-1).mean()),
+        "real_spread": float((real - real.mean(0)).norm(dim=-1).mean()),
+    }
+    if follow_through:
+        record["final_success"] = final_success
+    clean_observations, _, ended = outcomes[0]
+    return record, clean_observations, ended
 
 
 def summarize_candidate_outcomes(records: list[dict]) -> dict:
@@ -122,4 +174,38 @@ def summarize_candidate_outcomes(records: list[dict]) -> dict:
         "decisions_some_candidates_succeed": len(split),
         "pick_succeeds_there": float(np.mean([r["success"][r["chosen"]] for r in split])) if split else float("nan"),
         "candidates_succeed_there": float(np.mean([np.mean(r["success"]) for r in split])) if split else float("nan"),
+        **_follow_through_summary([r for r in records if "final_success" in r]),
+    }
+
+
+def _follow_through_summary(records: list[dict]) -> dict:
+    """How often the episode, continued with the base policy, succeeds after the clean candidate,
+    DALI-R's pick, an average candidate (a random pick), and the candidate whose real outcome the
+    scorer rates best (DALI-R with perfect imagination); and, at decisions where only some
+    candidates go on to succeed, the area under the ROC curve of each score for telling them apart
+    (0.5: no better than chance)."""
+    if not records:
+        return {}
+
+    def rate(pick) -> float:
+        return float(np.mean([r["final_success"][pick(r)] for r in records]))
+
+    split = [r for r in records if 0 < sum(r["final_success"]) < len(r["final_success"])]
+
+    def auc(score: str) -> float:
+        values = [
+            mannwhitneyu(*(np.array(r[score])[np.array(r["final_success"]) == outcome] for outcome in (True, False))).statistic
+            / (sum(r["final_success"]) * (len(r["final_success"]) - sum(r["final_success"])))
+            for r in split
+        ]
+        return float(np.mean(values)) if values else float("nan")
+
+    return {
+        "final_success_clean": rate(lambda r: 0),
+        "final_success_pick": rate(lambda r: r["chosen"]),
+        "final_success_average_candidate": float(np.mean([np.mean(r["final_success"]) for r in records])),
+        "final_success_real_best": rate(lambda r: int(np.argmax(r["real_score"]))),
+        "decisions_split_by_final_success": len(split),
+        "imagined_score_auc_there": auc("imagined_score"),
+        "real_score_auc_there": auc("real_score"),
     }
