@@ -48,10 +48,9 @@ def _execute(env: PointCloudObservation, actions: np.ndarray) -> tuple[list[dict
 
 def _base_chunk(policy, history: list[dict], generator: torch.Generator, device: torch.device) -> np.ndarray:
     """The executed actions of one base-policy chunk (clean observations) for ``history``."""
-    steps = policy.config.obs_steps
-    cloud, agent_pos = (x[None] for x in _stack(history[-steps:], device))
+    cloud, agent_pos = (x[None] for x in _stack(history[-policy.config.obs_steps :], device))
     chunk = policy.sample(policy.encode(cloud, agent_pos), generator)[0]
-    return chunk[steps - 1 : steps - 1 + policy.config.action_steps].cpu().numpy()
+    return chunk[policy.config.executed].cpu().numpy()
 
 
 def _follow_through(env: PointCloudObservation, policy, history: list[dict], generator: torch.Generator, device: torch.device) -> bool:
@@ -119,11 +118,10 @@ def candidate_outcomes(
 
 def _try_candidates(actor: RerankingActor, env: PointCloudObservation, history: list[dict], base_generator, follow_through: bool, device):
     """One decision's record; leaves ``env`` after the clean candidate's actions."""
-    obs_steps, action_steps = actor.policy.config.obs_steps, actor.policy.config.action_steps
     cloud, agent_pos = (x[None] for x in _stack(history, device))
     chunks, scores = actor.propose(cloud, agent_pos)
     imagined = actor.imagine(cloud, agent_pos, chunks)[0]
-    executed = chunks[0, :, obs_steps - 1 : obs_steps - 1 + action_steps].cpu().numpy()
+    executed = chunks[0, :, actor.policy.config.executed].cpu().numpy()
     start, outcomes, final_success = env.get_state(), [], []
     for k, actions in enumerate(executed):
         env.set_state(start)
@@ -193,11 +191,11 @@ def _follow_through_summary(records: list[dict]) -> dict:
     split = [r for r in records if 0 < sum(r["final_success"]) < len(r["final_success"])]
 
     def auc(score: str) -> float:
-        values = [
-            mannwhitneyu(*(np.array(r[score])[np.array(r["final_success"]) == outcome] for outcome in (True, False))).statistic
-            / (sum(r["final_success"]) * (len(r["final_success"]) - sum(r["final_success"])))
-            for r in split
-        ]
+        """Mann-Whitney U over (successful, failed) pairs, averaged over the split decisions."""
+        values = []
+        for r in split:
+            scores, success = np.array(r[score]), np.array(r["final_success"])
+            values.append(mannwhitneyu(scores[success], scores[~success]).statistic / (success.sum() * (~success).sum()))
         return float(np.mean(values)) if values else float("nan")
 
     return {

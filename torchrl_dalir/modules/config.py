@@ -56,3 +56,9 @@ class PolicyConfig:
             raise ValueError(f"flow_objective must be 'flow_matching' or 'consistency', got {self.flow_objective!r}")
         if self.obs_steps - 1 + self.action_steps > self.horizon:
             raise ValueError("obs_steps - 1 + action_steps must not exceed the horizon")
+
+    @property
+    def executed(self) -> slice:
+        """The chunk entries executed at a decision: a chunk starts at the oldest observation step,
+        so the current step is entry ``obs_steps - 1``."""
+        return slice(self.obs_steps - 1, self.obs_steps - 1 + self.action_steps)

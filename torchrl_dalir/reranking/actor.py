@@ -92,8 +92,7 @@ class RerankingActor(TensorDictModuleBase):
         """Imagined latents ``[B, K, L]`` after the executed part of chunks ``[B, K, H, A]``,
         from observations ``[B, To, ...]``."""
         latent = self.encoder(cloud[:, -1], agent_pos[:, -1])  # s_t from the current observation
-        start = self.policy.config.obs_steps - 1
-        executed = chunks[..., start : start + self.world_model.action_steps, :]
+        executed = chunks[..., self.policy.config.executed, :]
         return self.world_model.imagine(latent.unsqueeze(1).expand(-1, chunks.shape[1], -1), executed)
 
     @torch.no_grad()
