@@ -96,12 +96,18 @@ def test_writer_finalizes_in_chunk_order(tmp_path):
 
     meta = DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[])
     writer = DatasetWriter(tmp_path, meta)
+    written = {}
     for chunk in (1, 0):  # written out of order
-        rows = trajectory_rows(synthetic_trajectory(3 + chunk, True), trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.5)
-        writer.write_chunk(chunk, rows)
+        written[chunk] = trajectory_rows(synthetic_trajectory(3 + chunk, True), trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.5)
+        writer.write_chunk(chunk, written[chunk])
     dataset = writer.finalize()
     assert dataset.lengths.tolist() == [4, 5]
     assert dataset.rows[keys.TRAJECTORY_ID].tolist() == [0] * 4 + [1] * 5
+    # every other entry reads back from disk as written, dtype included
+    expected = torch.cat([written[0], written[1]])
+    for key in expected.exclude(keys.TRAJECTORY_ID).keys(include_nested=True, leaves_only=True):
+        stored = dataset.rows[key]
+        assert stored.dtype == expected[key].dtype and torch.equal(stored, expected[key]), key
     assert not (tmp_path / "shards").exists()
 
 

@@ -74,16 +74,25 @@ def trained_world_model(collected, trained_policy, tmp_path_factory):
     return cfg, train_world_model(cfg), policy_path
 
 
-def test_world_model_checkpoint_and_metrics(trained_world_model):
+def test_world_model_checkpoint_and_metrics(trained_world_model, collected, monkeypatch):
+    from torchrl_dalir.training import world_model as stage
+    from torchrl_dalir.training.world_model import encode_rows, split_trajectories
+
     cfg, path, _ = trained_world_model
     parts = load_world_model(path)
     assert parts.task == "reach"
-    for key in ("brier", "calibration_error", "wm_mse", "no_change_mse"):
-        assert parts.metrics[key] >= 0
-    state = torch.load(path, weights_only=False)
-    held = set(state["held_out_trajectories"])
-    assert 0 < len(held) < 5
-    assert train_world_model(cfg) == path  # a finished run is not redone
+    held = split_trajectories(5, cfg.held_out_fraction, cfg.seed)
+    assert torch.load(path, weights_only=False)["held_out_trajectories"] == held.nonzero().flatten().tolist() == parts.held_out_trajectories
+    assert held.sum() == 2  # 40 % of 5 trajectories
+    # the reported Brier score is the loaded scorer's, on the held-out trajectories' rows only
+    rows = collected.rows
+    held_rows = held[rows[keys.TRAJECTORY_ID]]
+    probabilities = torch.sigmoid(parts.scorer(encode_rows(parts.encoder, rows[held_rows])))
+    brier = ((probabilities - rows[keys.COMPLETION_TARGET][held_rows]) ** 2).mean().item()
+    assert parts.metrics["brier"] == pytest.approx(brier, abs=1e-6) and parts.metrics["held_out_rows"] == held_rows.sum()
+    assert parts.metrics["wm_mse"] != parts.metrics["no_change_mse"]
+    monkeypatch.setattr(stage, "load_policy", lambda *a, **k: pytest.fail("a finished run was redone"))
+    assert train_world_model(cfg) == path
 
 
 def test_reranking_actor_from_checkpoints(trained_world_model):

@@ -99,8 +99,8 @@ class ChunkPolicy3D(TensorDictModuleBase):
         if noise is None:
             noise = torch.randn(shape, generator=generator, device=cond.device if generator is None else generator.device)
             noise = noise.to(cond.device)
-        elif noise.reshape(shape).shape != shape:
-            raise ValueError(f"noise must hold {shape} values")
+        elif noise.shape != (*batch_shape, *shape[1:]):
+            raise ValueError(f"noise must be {(*batch_shape, *shape[1:])} (one chunk per condition), got {tuple(noise.shape)}")
         chunk = self.generate(flat, noise.reshape(shape).to(cond.dtype))
         return self.action_normalizer.unnormalize(chunk).reshape(*batch_shape, *shape[1:])
 
