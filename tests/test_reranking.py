@@ -65,6 +65,17 @@ def test_shared_feature_dropout_equals_per_candidate_encoding():
     torch.testing.assert_close(cond[:, 0], policy.encode(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS]))
 
 
+def test_gaussian_observation_noise_jitters_every_candidate_but_the_clean_one():
+    policy, *_ = _parts()
+    obs = _observation(batch=2)
+    clean = policy.encode(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS])
+    cond = GaussianObservationNoise(0.05).conditions(policy, obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], 4, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(cond[:, 0], clean)
+    assert all(not torch.allclose(cond[:, k], clean) for k in range(1, 4))
+    still = GaussianObservationNoise(0.0).conditions(policy, obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], 4, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(still, clean[:, None].expand(-1, 4, -1))
+
+
 @pytest.mark.parametrize("candidates", [PointDropout(0.2), GaussianObservationNoise(0.01)])
 def test_actor_picks_the_best_scored_candidate_and_includes_the_clean_one(candidates):
     policy, encoder, world_model, scorer = _parts()

@@ -59,6 +59,16 @@ def test_task_completion_loss_falls():
     assert not any(p is q for p in encoder.parameters() for q in policy.parameters())
 
 
+def test_scorer_metrics_exact_values():
+    from torchrl_dalir.training.world_model import _scorer_metrics
+
+    metrics = _scorer_metrics(torch.tensor([0.05, 0.95]), torch.tensor([0.0, 1.0]))
+    assert metrics["brier"] == pytest.approx(0.0025)  # both off by 0.05
+    assert metrics["calibration_error"] == pytest.approx(0.05)  # two bins of weight 1/2, each off by 0.05
+    overconfident = _scorer_metrics(torch.tensor([0.9, 0.9, 0.9, 0.9]), torch.tensor([1.0, 0.0, 1.0, 0.0]))
+    assert overconfident["calibration_error"] == pytest.approx(0.4)  # one bin: says 0.9, is 0.5
+
+
 @pytest.fixture(scope="module")
 def trained_world_model(collected, trained_policy, tmp_path_factory):
     _, policy_path = trained_policy
