@@ -44,8 +44,8 @@ class Config:
 def main(argv: list[str]) -> None:
     cfg = parse_config(Config, argv)
     torch.set_num_threads(cfg.threads)
+    wm = parse_config(WorldModelTrainingConfig, [f"preset={cfg.preset}"], WORLD_MODEL_PRESETS)  # checks the preset name
     model_preset = POLICY_PRESETS[cfg.preset].get("model", {})
-    wm = parse_config(WorldModelTrainingConfig, [f"preset={cfg.preset}"], WORLD_MODEL_PRESETS)
     obs = TensorDict({keys.POINT_CLOUD: torch.rand(1, 2, cfg.num_points, 3), keys.AGENT_POS: torch.rand(1, 2, cfg.state_dim)}, [1])
     rows = []
     for kind in cfg.kinds:

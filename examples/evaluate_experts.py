@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
+from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.evaluation import evaluate
 from torchrl_dalir.experts import add_drift_noise, make_expert
 from torchrl_dalir.utils import atomic_write_text
@@ -33,6 +34,8 @@ class Config:
 
 def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
+    for task in cfg.tasks:
+        get_task(task)  # an unknown name fails before the first task runs
     rows = []
     for task in cfg.tasks:
         for scale in cfg.noise_scales:

@@ -29,8 +29,8 @@ class Config:
 
 def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
-    for task in cfg.tasks:
-        spec = get_task(task)
+    specs = [get_task(task) for task in cfg.tasks]  # an unknown name fails before the first plot
+    for task, spec in zip(cfg.tasks, specs):
         env = make_env(task, seed=cfg.seed)
         policy = None if spec.suite == ADROIT else make_expert(task)
         steps = 1 if spec.suite == ADROIT else cfg.steps

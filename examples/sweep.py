@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
-from torchrl_dalir.envs.tasks import get_task
+from torchrl_dalir.pipeline import PRESETS, PipelineConfig
 from torchrl_dalir.utils import atomic_write_text
 
 EXAMPLES = Path(__file__).resolve().parent
@@ -40,12 +40,15 @@ class Config:
     overrides: list[str] = field(default_factory=list)  # passed to every run, e.g. [eval_episodes=100]
 
 
+def run_arguments(cfg: Config, task: str, seed: int) -> list[str]:
+    return [f"task={task}", f"seed={seed}", f"policy={cfg.policy}", f"preset={cfg.preset}", f"out={cfg.out}", *cfg.overrides]
+
+
 def run_one(cfg: Config, task: str, seed: int) -> dict:
     name = f"{task}_{cfg.policy}_seed{seed}"
     log = Path(cfg.out) / "logs" / f"{name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
-    command = [sys.executable, str(EXAMPLES / "train_dp3_wm.py"), f"task={task}", f"seed={seed}", f"policy={cfg.policy}",
-               f"preset={cfg.preset}", f"out={cfg.out}", *cfg.overrides]
+    command = [sys.executable, str(EXAMPLES / "train_dp3_wm.py"), *run_arguments(cfg, task, seed)]
     env = {**os.environ, "OMP_NUM_THREADS": str(cfg.threads), "MKL_NUM_THREADS": str(cfg.threads)}
     start = time.perf_counter()
     with log.open("a") as stream:
@@ -57,9 +60,9 @@ def run_one(cfg: Config, task: str, seed: int) -> dict:
 
 def main(argv: list[str]) -> None:
     cfg = parse_config(Config, argv)
-    for task in cfg.tasks:
-        get_task(task)  # unknown names fail now, not an hour into the sweep
     runs = [(task, seed) for seed in cfg.seeds for task in cfg.tasks]
+    for run in runs:  # a bad task, policy, preset or override fails now, not an hour into the sweep
+        parse_config(PipelineConfig, run_arguments(cfg, *run), PRESETS)
     with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
         records = list(pool.map(lambda run: run_one(cfg, *run), runs))
     atomic_write_text(Path(cfg.out) / "sweep.json", json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))

@@ -7,9 +7,11 @@ hydra-style overrides on the command line (``task=shelf-place preset=smoke seed=
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import TypeVar
 
 from omegaconf import OmegaConf
+from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
 C = TypeVar("C")
 
@@ -25,7 +27,25 @@ def parse_config(config_class: type[C], argv: list[str], presets: dict[str, dict
         if preset not in presets:
             raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(presets)}")
         layers.append(presets[preset])
-    return OmegaConf.to_object(OmegaConf.merge(*layers, cli))
+    try:
+        return OmegaConf.to_object(OmegaConf.merge(*layers, cli))
+    except OmegaConfBaseException as error:  # a misspelt key or a badly typed value
+        raise ValueError(_explain(error, base)) from None
+
+
+def _explain(error: OmegaConfBaseException, base) -> str:
+    message = f"bad setting {error.full_key!r}: {str(error.msg).splitlines()[0]}"
+    if isinstance(error, ConfigKeyError):
+        parent = error.full_key.rpartition(".")[0]
+        node = OmegaConf.select(base, parent) if parent else base
+        message += f"; the settings {'of ' + repr(parent) if parent else 'here'} are {', '.join(node.keys())}"
+    return message
+
+
+def check_choice(name: str, value, choices: Collection) -> None:
+    """A ``ValueError`` that lists the allowed values unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {sorted(choices)}, got {value!r}")
 
 
 def config_dict(config) -> dict:

@@ -10,8 +10,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_dalir.config import check_choice
 from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
 from torchrl_dalir.data.config import CollectionConfig
+from torchrl_dalir.envs.tasks import get_task
+from torchrl_dalir.modules.config import POLICY_KINDS
 from torchrl_dalir.training.policy import PRESETS as POLICY_PRESETS
 from torchrl_dalir.training.policy import PolicyTrainingConfig
 from torchrl_dalir.training.world_model import PRESETS as WORLD_MODEL_PRESETS
@@ -53,6 +56,8 @@ class PipelineConfig:
     world_model: WorldModelTrainingConfig = field(default_factory=WorldModelTrainingConfig)
 
     def __post_init__(self):
+        get_task(self.task)  # an unknown name fails here, not after the demos
+        check_choice("policy", self.policy, POLICY_KINDS)
         unknown = set(self.redo) - set(STAGES)
         if unknown:
             raise ValueError(f"unknown stages {sorted(unknown)}; stages are {STAGES}")

@@ -5,7 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_dalir.config import check_choice
 from torchrl_dalir.data.collection import Source
+from torchrl_dalir.envs.tasks import get_task
 
 
 @dataclass
@@ -32,6 +34,10 @@ class CollectionConfig:
     num_workers: int = 2
     chunk_size: int = 100
     progress: bool = True
+
+    def __post_init__(self):
+        get_task(self.task)  # an unknown name fails here, with the list of known ones
+        check_choice("stage", self.stage, ("demos", "mixed", "all"))
 
     def demos_dir(self) -> Path:
         return Path(self.out) / self.task / "demos"

@@ -41,6 +41,7 @@ def evaluate_checkpoints(
     ``success_rate``, ``episodes``, ``seconds`` and per-episode ``records``; the reranking
     methods' records describe their choices in ``details`` (:func:`decision_summary`).
     """
+    from torchrl_dalir.training.loop import load_checkpoint
     from torchrl_dalir.training.policy import load_policy
 
     methods = methods if methods is not None else ["base"] + (["dalir"] if world_model_path is not None else [])
@@ -50,6 +51,8 @@ def evaluate_checkpoints(
     if world_model_path is None and set(methods) - {"base"}:
         raise ValueError(f"methods {methods} rerank candidates: they need a world_model_path")
     policy = load_policy(policy_path, device)
+    if world_model_path is not None:
+        load_checkpoint(world_model_path, "world_model")  # fails now, not after the base policy's episodes
     steps = (policy.config.obs_steps, policy.config.action_steps)
     reranking = {"dalir": RerankingActor, "random": RandomCandidateActor}
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from torchrl_dalir.config import check_choice
+
+POLICY_KINDS = ("dp", "fm")  # DDIM diffusion (DP3), linear-path flow matching
+
 
 @dataclass
 class PolicyConfig:
@@ -50,10 +54,8 @@ class PolicyConfig:
     consistency_alpha: float = 1e-5
 
     def __post_init__(self):
-        if self.kind not in ("dp", "fm"):
-            raise ValueError(f"policy kind must be 'dp' or 'fm', got {self.kind!r}")
-        if self.flow_objective not in ("flow_matching", "consistency"):
-            raise ValueError(f"flow_objective must be 'flow_matching' or 'consistency', got {self.flow_objective!r}")
+        check_choice("policy kind", self.kind, POLICY_KINDS)
+        check_choice("flow_objective", self.flow_objective, ("flow_matching", "consistency"))
         if self.obs_steps - 1 + self.action_steps > self.horizon:
             raise ValueError("obs_steps - 1 + action_steps must not exceed the horizon")
 

@@ -61,11 +61,17 @@ def save_checkpoint(path: str | Path, payload: dict) -> None:
 def load_checkpoint(path: str | Path, kind: str) -> dict:
     """Loads a checkpoint written by this library and checks that it holds a ``kind`` model."""
     path = Path(path)
+    if path.is_dir():
+        found = sorted(path.glob("*.pt"))
+        raise IsADirectoryError(f"{path} is a directory; pass the {kind} checkpoint file in it ({[p.name for p in found] or 'none found'})")
     if not path.exists():
         raise FileNotFoundError(f"no {kind} checkpoint at {path}")
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    if state.get("kind") != kind:
-        raise ValueError(f"{path} is not a {kind} checkpoint")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as error:  # not a torch file at all (a JSON file, a truncated download, ...)
+        raise ValueError(f"{path} is not a torchrl_dalir {kind} checkpoint: {error}") from error
+    if not isinstance(state, dict) or state.get("kind") != kind:
+        raise ValueError(f"{path} is not a torchrl_dalir {kind} checkpoint")
     return state
 
 

@@ -12,10 +12,12 @@ from pathlib import Path
 import torch
 
 from torchrl_dalir import keys
-from torchrl_dalir.config import config_dict
+from torchrl_dalir.config import check_choice, config_dict
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
+from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.modules import ChunkPolicy3D, PolicyConfig, make_policy
+from torchrl_dalir.modules.config import POLICY_KINDS
 from torchrl_dalir.objectives import ConsistencyFlowMatchingLoss, DiffusionLoss, FlowMatchingLoss
 from torchrl_dalir.training.logging import make_logger
 from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint
@@ -42,6 +44,10 @@ class PolicyTrainingConfig:
     log_every: int = 50
     wandb: bool = True  # offline unless the user has set wandb up (WANDB_MODE)
     progress: bool = True
+
+    def __post_init__(self):
+        get_task(self.task)  # an unknown name fails here, with the list of known ones
+        check_choice("policy", self.policy, POLICY_KINDS)
 
     def run_dir(self) -> Path:
         return Path(self.out) / self.task / f"{self.policy}_seed{self.seed}"

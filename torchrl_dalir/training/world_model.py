@@ -23,9 +23,10 @@ from tensordict import TensorDict
 from torch import nn
 
 from torchrl_dalir import keys
-from torchrl_dalir.config import config_dict
+from torchrl_dalir.config import check_choice, config_dict
 from torchrl_dalir.data import TrajectoryDataset, dense_reward_targets
 from torchrl_dalir.data.windows import TrajectoryWindows
+from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.objectives import LatentDynamicsLoss, TaskCompletionLoss
 from torchrl_dalir.objectives.latent_dynamics import LATENT
@@ -72,8 +73,8 @@ class WorldModelTrainingConfig:
     progress: bool = True
 
     def __post_init__(self):
-        if self.scorer_target not in SCORER_TARGETS:
-            raise ValueError(f"scorer_target must be one of {sorted(SCORER_TARGETS)}, got {self.scorer_target!r}")
+        get_task(self.task)  # an unknown name fails here, with the list of known ones
+        check_choice("scorer_target", self.scorer_target, SCORER_TARGETS)
 
     def run_dir(self) -> Path:
         suffix = "" if self.scorer_target == "completion" else f"_{self.scorer_target}"

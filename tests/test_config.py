@@ -1,0 +1,49 @@
+"""Bad settings and bad files fail at once, with a message that names them."""
+
+import pytest
+import torch
+
+from torchrl_dalir.config import parse_config
+from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
+from torchrl_dalir.data.config import CollectionConfig
+from torchrl_dalir.pipeline import PRESETS, PipelineConfig
+from torchrl_dalir.training.loop import load_checkpoint
+
+
+@pytest.mark.parametrize(
+    ("argv", "error", "message"),
+    [
+        (["epochz=3"], ValueError, "bad setting 'epochz'.*the settings here are task, preset, seed"),
+        (["policy_training.model.foo=1"], ValueError, "'policy_training.model.foo'.*settings of 'policy_training.model' are kind, horizon"),
+        (["eval_episodes=ten"], ValueError, "bad setting 'eval_episodes': Value 'ten'"),
+        (["preset=gpu"], ValueError, r"unknown preset 'gpu'; choose one of \['cpu', 'paper', 'smoke'\]"),
+        (["policy=xyz"], ValueError, r"policy must be one of \['dp', 'fm'\], got 'xyz'"),
+        (["task=dissasemble"], KeyError, "unknown task 'dissasemble'. Benchmark tasks: .*'disassemble'"),
+        (["redo=[policies]"], ValueError, "unknown stages"),
+    ],
+)
+def test_bad_settings_fail_with_a_clear_message(argv, error, message):
+    with pytest.raises(error, match=message):
+        parse_config(PipelineConfig, argv, PRESETS)
+
+
+def test_good_settings_reach_the_nested_stages():
+    cfg = parse_config(PipelineConfig, ["task=stick-pull", "policy=dp", "preset=smoke", "seed=2", "policy_training.model.ddim_steps=3"], PRESETS)
+    assert (cfg.policy_training.task, cfg.policy_training.policy, cfg.policy_training.seed) == ("stick-pull", "dp", 2)
+    assert cfg.policy_training.model.ddim_steps == 3 and cfg.collection.mixed_name == "mixed_dp_seed2"
+    with pytest.raises(ValueError, match="stage must be one of"):
+        parse_config(CollectionConfig, ["stage=everything"], COLLECTION_PRESETS)
+
+
+def test_load_checkpoint_explains_directories_and_foreign_files(tmp_path):
+    torch.save({"kind": "policy"}, tmp_path / "checkpoint.pt")
+    assert load_checkpoint(tmp_path / "checkpoint.pt", "policy") == {"kind": "policy"}
+    with pytest.raises(IsADirectoryError, match=r"pass the policy checkpoint file in it \(\['checkpoint.pt'\]\)"):
+        load_checkpoint(tmp_path, "policy")
+    with pytest.raises(ValueError, match="is not a torchrl_dalir world_model checkpoint"):
+        load_checkpoint(tmp_path / "checkpoint.pt", "world_model")
+    (tmp_path / "meta.json").write_text('{"task": "reach"}')
+    with pytest.raises(ValueError, match="meta.json is not a torchrl_dalir policy checkpoint"):
+        load_checkpoint(tmp_path / "meta.json", "policy")
+    with pytest.raises(FileNotFoundError, match="no policy checkpoint"):
+        load_checkpoint(tmp_path / "missing.pt", "policy")
