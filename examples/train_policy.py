@@ -36,7 +36,7 @@ def main(argv: list[str]) -> None:
     if cfg.eval_episodes:
         policy = load_policy(path, cfg.device, task=cfg.task)
         actor = receding_horizon(policy, cfg.model.obs_steps, cfg.model.action_steps)
-        result = evaluate(actor, cfg.task, cfg.eval_episodes, cfg.eval_seed, num_points=policy.num_points, history=cfg.model.obs_steps, device=cfg.device)
+        result = evaluate(actor, cfg.task, cfg.eval_episodes, cfg.eval_seed, num_points=policy.num_points, history=cfg.model.obs_steps, device=cfg.device, progress=cfg.progress)
         atomic_write_text(path.parent / f"eval_seed{cfg.eval_seed}.json", json.dumps(result.to_dict(), indent=1))
         print(f"{cfg.task} {cfg.policy} seed {cfg.seed}: success {result.success_rate:.1%} over {cfg.eval_episodes} episodes")
 
