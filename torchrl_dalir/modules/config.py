@@ -9,6 +9,12 @@ from torchrl_dalir.config import check_choice
 POLICY_KINDS = ("dp", "fm")  # DDIM diffusion (DP3), linear-path flow matching
 
 
+def executed_slice(obs_steps: int, action_steps: int) -> slice:
+    """The chunk entries executed at a decision: a chunk starts at the oldest observation step,
+    so the current step is entry ``obs_steps - 1``."""
+    return slice(obs_steps - 1, obs_steps - 1 + action_steps)
+
+
 @dataclass
 class PolicyConfig:
     """Architecture and sampler of a base policy. Defaults are DP3's (the ``paper`` preset).
@@ -61,6 +67,5 @@ class PolicyConfig:
 
     @property
     def executed(self) -> slice:
-        """The chunk entries executed at a decision: a chunk starts at the oldest observation step,
-        so the current step is entry ``obs_steps - 1``."""
-        return slice(self.obs_steps - 1, self.obs_steps - 1 + self.action_steps)
+        """The chunk entries executed at a decision (see :func:`executed_slice`)."""
+        return executed_slice(self.obs_steps, self.action_steps)

@@ -9,6 +9,7 @@ from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.modules.tensordict_module.actors import MultiStepActorWrapper
 
 from torchrl_dalir import keys
+from torchrl_dalir.modules.config import executed_slice
 
 ACTION_PLAN = "action_plan"  # [..., action_steps, A], the part of the chunk that will be executed
 
@@ -24,11 +25,11 @@ class ExecutedActions(TensorDictModuleBase):
 
     def __init__(self, obs_steps: int, action_steps: int):
         super().__init__()
-        self.start, self.stop = obs_steps - 1, obs_steps - 1 + action_steps
+        self.executed = executed_slice(obs_steps, action_steps)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         chunk = tensordict.get(keys.ACTION_CHUNK)
-        return tensordict.set(ACTION_PLAN, chunk[..., self.start : self.stop, :])
+        return tensordict.set(ACTION_PLAN, chunk[..., self.executed, :])
 
 
 class RepeatPerStep(TensorDictModuleBase):
