@@ -27,6 +27,7 @@ from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.evaluation.candidate_outcomes import candidate_outcomes, summarize_candidate_outcomes
 from torchrl_dalir.evaluation.plots import plot_candidate_outcomes
 from torchrl_dalir.reranking import PointDropout
+from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.utils import atomic_write_text
 
 
@@ -50,7 +51,8 @@ def main(argv: list[str]) -> dict:
     cfg: Config = parse_config(Config, argv)
     torch.manual_seed(cfg.actor_seed)
     actor = RerankingActor.from_checkpoints(
-        cfg.policy, cfg.world_model, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.actor_seed
+        cfg.policy, cfg.world_model, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.actor_seed,
+        selection=SelectionConfig(),  # imagined and real outcomes rated by the same (state) scorer; "chosen" is its arg-max
     )
     task = actor.policy.task
     records = candidate_outcomes(

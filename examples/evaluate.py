@@ -3,6 +3,7 @@
     python examples/evaluate.py policy=outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt
     python examples/evaluate.py policy=.../checkpoint.pt world_model=.../world_model.pt episodes=100
     python examples/evaluate.py policy=... world_model=... methods=[random]   # the random-choice control
+    python examples/evaluate.py policy=... world_model=... methods=[dalir] selection.rule=argmax   # another rule
 
 Prints a table and writes ``<out>/evaluation.json`` (rates and per-episode records) and
 ``<out>/evaluation.csv`` (one row per method and episode; DALI-R's rows also describe its choices,
@@ -20,6 +21,7 @@ from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.evaluation.compare import evaluate_checkpoints
+from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.utils import atomic_write_text
 
 
@@ -34,6 +36,7 @@ class Config:
     dropout: float = 0.2
     actor_seed: int = 0
     methods: list[str] | None = None  # among base, dalir, random (DALI-R's candidates chosen at random)
+    selection: SelectionConfig | None = None  # DALI-R's rule (selection.rule=argmax ...); default: the checkpoint's
     out: str = "outputs/evaluation"
 
 
@@ -42,6 +45,7 @@ def main(argv: list[str]) -> None:
     rows = evaluate_checkpoints(
         cfg.policy, cfg.world_model, episodes=cfg.episodes, seed=cfg.seed, device=cfg.device,
         num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed, methods=cfg.methods,
+        selection=cfg.selection,
     )
     print(f"\n{'method':16s} {'success':>8s} {'episodes':>9s} {'seconds':>8s}")
     for name, row in rows.items():

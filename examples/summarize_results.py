@@ -1,11 +1,17 @@
-"""Gathers the main job's results over tasks and seeds into one table and one plot.
+"""Gathers the main job's results over tasks and seeds into tables and plots.
 
     python examples/summarize_results.py out=outputs/pipeline
+    python examples/summarize_results.py out=outputs/pipeline trusted_json=docs/results/trusted_selection.json
 
 Reads every ``<out>/results/<task>/<policy>_seed<seed>[_<scorer target>]/results.json`` and writes
 ``<out>/summary.md``, ``<out>/summary.json`` and ``<out>/summary_<policy>.png``: per task and backbone,
 base-policy and DALI-R success as mean +- std over seeds (population std), the difference, and
 an episode-paired sign test over all seeds' episodes (how many episodes only one method solved).
+
+Where the runs also evaluated DALI-R with the paper's arg-max and the random-candidate control
+(the main job's default ``eval_methods``), it writes the trusted-selection table too
+(``<out>/trusted_selection.md``, ``.json`` and ``trusted_selection_<policy>.png``): base, the
+calibrated default rule, arg-max and random per task, the default's gain and its sign test.
 """
 
 from __future__ import annotations
@@ -18,42 +24,44 @@ from pathlib import Path
 from statistics import mean, pstdev
 
 from torchrl_dalir.config import parse_config
-from torchrl_dalir.evaluation.compare import BASE, DALIR, paired_sign_test
+from torchrl_dalir.evaluation.compare import METHODS, paired_sign_test
 from torchrl_dalir.evaluation.plots import plot_success_by_task
 from torchrl_dalir.utils import atomic_write_text
+
+TRUSTED = (("base", "base policy"), ("dalir", "DALI-R, calibrated rule"), ("argmax", "DALI-R, arg-max (paper)"), ("random", "random candidate"))
 
 
 @dataclass
 class Config:
     out: str = "outputs/pipeline"
+    trusted_json: str | None = None  # also write the trusted-selection data here (e.g. docs/results/trusted_selection.json)
 
 
 def gather(root: Path) -> list[dict]:
-    groups = defaultdict(lambda: {"base": [], "dalir": [], "seeds": [], "episodes": set(), "episode_success": {"base": [], "dalir": []}})
+    """One row per (task, policy, scorer target): per method (short name) the per-seed success
+    rates and every seed's per-episode successes; the DALI-R rule of each seed; and the sign test
+    of DALI-R against the base policy."""
+    groups = defaultdict(lambda: {"seeds": [], "episodes": set(), "rules": [], "episode_success": defaultdict(list), **{m: [] for m in METHODS}})
     for path in sorted(root.glob("results/*/*/results.json")):
         result = json.loads(path.read_text())
         cfg = result["config"]
         group = groups[(cfg["task"], cfg["policy"], cfg["world_model"].get("scorer_target", "completion"))]
-        group["base"].append(result["success"][BASE]["success_rate"])
-        group["dalir"].append(result["success"][DALIR]["success_rate"])
         group["seeds"].append(cfg["seed"])
         group["episodes"].add(cfg["eval_episodes"])
-        for name, method in (("base", BASE), ("dalir", DALIR)):
-            group["episode_success"][name].extend(r["success"] for r in result["success"][method]["records"])
-    return [{"task": t, "policy": p, "scorer_target": s, **g, "episodes": sorted(g["episodes"]),
+        group["rules"].append(result["success"]["DALI-R"].get("selection", "argmax(state)"))
+        for short, name in METHODS.items():
+            if name in result["success"]:
+                group[short].append(result["success"][name]["success_rate"])
+                group["episode_success"][short].extend(r["success"] for r in result["success"][name]["records"])
+    return [{"task": t, "policy": p, "scorer_target": s, **g, "episodes": sorted(g["episodes"]), "episode_success": dict(g["episode_success"]),
              **paired_sign_test(g["episode_success"]["base"], g["episode_success"]["dalir"])} for (t, p, s), g in groups.items()]
 
 
-def main(argv: list[str]) -> None:
-    cfg: Config = parse_config(Config, argv)
-    root = Path(cfg.out)
-    table = gather(root)
-    if not table:
-        raise FileNotFoundError(f"no results under {root / 'results'}; run examples/train_dp3_wm.py first")
+def pct(values) -> str:
+    return f"{100 * mean(values):.1f} +- {100 * pstdev(values):.1f}"
 
-    def pct(values):
-        return f"{100 * mean(values):.1f} +- {100 * pstdev(values):.1f}"
 
+def summary_table(table: list[dict]) -> str:
     lines = ["| task | policy | scorer target | seeds | episodes per seed | base policy (%) | + DALI-R (%) | difference (points) "
              "| episodes only base / only DALI-R solved | sign-test p |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -69,7 +77,63 @@ def main(argv: list[str]) -> None:
             difference = mean(mean(d - b for b, d in zip(row["base"], row["dalir"])) for row in rows)
             lines.append(f"| all {len(rows)} tasks | {policy} | {target} | | | | | {100 * difference:+.1f} | "
                          f"{test['base_only']} / {test['dalir_only']} | {test['p_value']:.2f} |")
-    text = "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n"
+
+
+def trusted_rows(table: list[dict], policy: str) -> list[dict]:
+    """The rows of ``policy`` (sparse-label scorer) whose every seed evaluated all four methods."""
+    return [row for row in table if row["policy"] == policy and row["scorer_target"] == "completion"
+            and all(len(row[m]) == len(row["seeds"]) for m, _ in TRUSTED)]
+
+
+def trusted_selection(table: list[dict]) -> dict:
+    """The trusted-selection data: per backbone (``fm`` at the top level, others under their name)
+    and task, the mean success (%) of every method, seeds, episodes per seed and the default's
+    sign test against the base policy; the default rule (the rule family that calibration chose
+    from, with each seed's setting under ``rules``) and the mean gain over the tasks."""
+    out = {}
+    for policy in sorted({row["policy"] for row in table}):
+        rows = trusted_rows(table, policy)
+        if not rows:
+            continue
+        tasks = {row["task"]: {"base": 100 * mean(row["base"]), "default": 100 * mean(row["dalir"]), "argmax": 100 * mean(row["argmax"]),
+                               "random": 100 * mean(row["random"]), "seeds": len(row["seeds"]),
+                               "episodes": row["episodes"][0] if len(row["episodes"]) == 1 else row["episodes"],
+                               "p_default_vs_base": row["p_value"], "only_base": row["base_only"], "only_default": row["dalir_only"],
+                               "rules": dict(zip(map(str, row["seeds"]), row["rules"]))} for row in rows}
+        families = sorted({rule.split("(")[0] for t in tasks.values() for rule in t["rules"].values()})
+        block = {"tasks": {task: {k: round(v, 4 if k.startswith("p_") else 1) if isinstance(v, float) else v for k, v in t.items()}
+                           for task, t in tasks.items()},
+                 "default_rule": " / ".join(families),
+                 "mean_gain": round(mean(t["default"] - t["base"] for t in tasks.values()), 1),
+                 "mean_gain_argmax": round(mean(t["argmax"] - t["base"] for t in tasks.values()), 1)}
+        if policy == "fm":
+            out.update(block)
+        else:
+            out[policy] = block
+    return out
+
+
+def trusted_table(data: dict) -> str:
+    lines = ["| backbone | task | seeds x episodes | base (%) | default rule (%) | arg-max (%) | random (%) | only base / only default | p |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for policy, block in [("fm", data), *((k, v) for k, v in data.items() if isinstance(v, dict) and "tasks" in v)]:
+        if "tasks" not in block:
+            continue
+        for task, t in block["tasks"].items():
+            lines.append(f"| {policy} | {task} | {t['seeds']} x {t['episodes']} | {t['base']:.1f} | {t['default']:.1f} | {t['argmax']:.1f} | "
+                         f"{t['random']:.1f} | {t['only_base']} / {t['only_default']} | {t['p_default_vs_base']:.3f} |")
+        lines.append(f"| {policy} | mean gain over base (points) | | | {block['mean_gain']:+.1f} | {block['mean_gain_argmax']:+.1f} | | | |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str]) -> None:
+    cfg: Config = parse_config(Config, argv)
+    root = Path(cfg.out)
+    table = gather(root)
+    if not table:
+        raise FileNotFoundError(f"no results under {root / 'results'}; run examples/train_dp3_wm.py first")
+    text = summary_table(table)
     print(text)
     atomic_write_text(root / "summary.md", text)
     atomic_write_text(root / "summary.json", json.dumps(table, indent=1))
@@ -77,6 +141,17 @@ def main(argv: list[str]) -> None:
         rows = [row for row in table if row["policy"] == policy and row["scorer_target"] == "completion"]
         if rows:
             plot_success_by_task(rows, root / f"summary_{policy}.png", title=f"DALI-R on a frozen {policy.upper()} policy")
+    trusted = trusted_selection(table)
+    if trusted:
+        text = trusted_table(trusted)
+        print(text)
+        atomic_write_text(root / "trusted_selection.md", text)
+        for path in [root / "trusted_selection.json", *([Path(cfg.trusted_json)] if cfg.trusted_json else [])]:
+            atomic_write_text(path, json.dumps(trusted, indent=1) + "\n")
+        for policy in sorted({row["policy"] for row in table}):
+            rows = trusted_rows(table, policy)
+            if rows:
+                plot_success_by_task(rows, root / f"trusted_selection_{policy}.png", title=f"Selection rules on a frozen {policy.upper()} policy", methods=TRUSTED)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""DALI-R end to end on one task: demos -> base policy -> mixed data -> world model -> evaluation.
+"""DALI-R end to end on one task: demos -> base policy -> mixed data -> world model -> calibration -> evaluation.
 
     python examples/train_dp3_wm.py                                  # disassemble, cpu preset
     python examples/train_dp3_wm.py task=shelf-place policy=dp seed=1
@@ -20,10 +20,12 @@ from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.data import Source, TrajectoryDataset, collect
-from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints, pool_decision_summaries
+from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, store_selection
+from torchrl_dalir.evaluation.compare import ARGMAX, BASE, DALIR, evaluate_checkpoints, paired_sign_test, pool_decision_summaries
 from torchrl_dalir.evaluation.diagnostics import imagination_curves
 from torchrl_dalir.evaluation.plots import plot_imagination_diagnostics
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
+from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training import load_policy, load_world_model, train_policy, train_world_model
 from torchrl_dalir.training.loop import training_finished
 from torchrl_dalir.training.policy import policy_actor
@@ -70,16 +72,45 @@ def main(argv: list[str]) -> None:
     # 4. Latent encoder, task-completion scorer and latent world model, the policy frozen.
     stage("world_model", cfg, world_model_path, lambda: train_world_model(cfg.world_model))
 
-    # 5. Base policy and DALI-R on the same evaluation episodes.
-    stage("evaluation", cfg, results / "results.json", lambda: evaluate_and_report(cfg, policy_path, world_model_path))
+    # 5. The selection rule's setting, chosen on validation episodes and stored in the world model.
+    # (done only if the world model holds this calibration: a retrained world model is calibrated again)
+    calibration = cfg.calibration_dir() / "calibration.json"
+    stage("calibration", cfg, calibration, lambda: calibrate_and_record(cfg, policy_path, world_model_path, calibration),
+          finished=lambda path: path.exists() and json.loads(path.read_text()) == load_world_model(world_model_path).calibration)
+
+    # 6. Base policy, DALI-R (calibrated rule and the paper's arg-max) and the random-candidate
+    #    control on the same test episodes.
+    # (done only if DALI-R was evaluated with the rule that the world model now names)
+    stage("evaluation", cfg, results / "results.json", lambda: evaluate_and_report(cfg, policy_path, world_model_path),
+          finished=lambda path: path.exists() and evaluated_rule(path) in (None, load_world_model(world_model_path).selection.name))
     print((results / "results.md").read_text())
+
+
+def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_path: Path, out: Path) -> None:
+    """Chooses the selection rule's setting on validation episodes (``calibration_episodes=0``:
+    the paper's arg-max) and stores it in the world model; the record also goes to ``out``."""
+    if cfg.calibration_episodes > 0:
+        record = calibrate(policy_path, world_model_path, grid=GRIDS[cfg.calibration_grid], episodes=cfg.calibration_episodes,
+                           seed=cfg.calibration_seed, test_seed=cfg.eval_seed, device=cfg.device, num_candidates=cfg.num_candidates,
+                           dropout=cfg.dropout, actor_seed=cfg.seed)
+        print(f"[calibration] chosen on {cfg.calibration_episodes} validation episodes: {record['chosen']}", flush=True)
+    else:
+        record = {"chosen": SelectionConfig().name, "episodes": 0}
+        store_selection(world_model_path, SelectionConfig(), record)
+    atomic_write_text(out, json.dumps(record, indent=1))
+
+
+def evaluated_rule(results_path: Path) -> str | None:
+    """The selection rule with which a finished evaluation ran DALI-R (``None``: it did not)."""
+    success = json.loads(results_path.read_text())["success"]
+    return success[DALIR].get("selection", "argmax(state)") if DALIR in success else None  # earlier runs: the arg-max
 
 
 def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path: Path) -> None:
     results = cfg.results_dir()
     rows = evaluate_checkpoints(
         policy_path, world_model_path, episodes=cfg.eval_episodes, seed=cfg.eval_seed, device=cfg.device,
-        num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.seed,
+        num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.seed, methods=cfg.eval_methods,
     )
     policy = load_policy(policy_path, task=cfg.task)
 
@@ -92,21 +123,35 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
     curves = [imagination_curves(parts, mixed, i, policy.config.action_steps) for i in picks if i is not None]
     plot = plot_imagination_diagnostics(curves, results / "imagination.png", title=f"{cfg.task}: held-out trajectories")
 
-    base, ours = rows[BASE]["success_rate"], rows[DALIR]["success_rate"]
-    choices = pool_decision_summaries([record["details"] for record in rows[DALIR]["records"]])
     metrics = parts.metrics
-    table = "\n".join([
+    base = [r["success"] for r in rows[BASE]["records"]] if BASE in rows else None
+    lines = [
         f"# DALI-R on {cfg.task} ({cfg.policy}, seed {cfg.seed}, preset {cfg.preset}, scorer target {cfg.world_model.scorer_target})",
         "",
-        "| method | success | episodes |",
-        "| --- | --- | --- |",
-        f"| base policy ({cfg.policy}) | {base:.1%} | {cfg.eval_episodes} |",
-        f"| + DALI-R ({cfg.num_candidates} candidates, point dropout {cfg.dropout}) | {ours:.1%} | {cfg.eval_episodes} |",
+        f"{cfg.eval_episodes} test episodes (evaluation seed {cfg.eval_seed}); DALI-R: {cfg.num_candidates} candidates, point dropout {cfg.dropout}.",
+        "",
+        "| method | rule | success | only base / only this method | sign-test p |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for name, row in rows.items():
+        test = paired_sign_test(base, [r["success"] for r in row["records"]]) if base is not None and name != BASE else None
+        paired = f"{test['base_only']} / {test['dalir_only']} | {test['p_value']:.2f}" if test else " | "
+        lines.append(f"| {name} | {row.get('selection', '')} | {row['success_rate']:.1%} | {paired} |")
+    lines += [
         "",
         f"Held-out scorer: Brier {metrics['brier']:.4f}, calibration error {metrics['calibration_error']:.4f}. "
         f"Held-out world-model MSE {metrics['wm_mse']:.4f} vs {metrics['no_change_mse']:.4f} for 'no change'.",
-        f"DALI-R's choices over {choices['decisions']} decisions: the clean candidate kept in {choices['clean_chosen']:.0%}; "
-        f"the chosen candidate scored {choices['chosen_margin']:.4f} above the clean one (candidate score std {choices['score_spread']:.4f}).",
+    ]
+    if "imagined_brier_ensemble" in metrics:
+        lines.append(f"On imagined latents of held-out chunks (target at t + k): Brier {metrics['imagined_brier_state_scorer']:.4f} "
+                     f"(state scorer) vs {metrics['imagined_brier_ensemble']:.4f} (scorer ensemble, member std {metrics['ensemble_std']:.4f}).")
+    for name in (DALIR, ARGMAX):
+        if name in rows:
+            choices = pool_decision_summaries([record["details"] for record in rows[name]["records"]])
+            lines.append(f"{name}'s choices over {choices['decisions']} decisions: the clean candidate kept in {choices['clean_chosen']:.0%}; "
+                         f"the chosen candidate scored {choices['chosen_margin']:.4f} above the clean one (candidate score std {choices['score_spread']:.4f}).")
+    table = "\n".join([
+        *lines,
         f"Diagnostics: {plot.name}",
         "",
     ])

@@ -73,3 +73,22 @@ def trained_policy(collected, tmp_path_factory):
     out = tmp_path_factory.mktemp("policies")
     cfg = parse_config(PolicyTrainingConfig, ["preset=smoke", "task=reach", f"data={data}", f"out={out}", "progress=false"], POLICY_PRESETS)
     return cfg, train_policy(cfg)
+
+
+@pytest.fixture(scope="session")
+def trained_world_model(collected, trained_policy, tmp_path_factory):
+    """A smoke-preset world model (with its scorer ensemble) on top of ``trained_policy``."""
+    from torchrl_dalir.config import parse_config
+    from torchrl_dalir.training import WORLD_MODEL_PRESETS, WorldModelTrainingConfig, train_world_model
+
+    _, policy_path = trained_policy
+    data = tmp_path_factory.mktemp("wm_data")
+    (data / "reach").mkdir()
+    (data / "reach" / "mixed").symlink_to(collected.root)
+    out = tmp_path_factory.mktemp("world_models")
+    cfg = parse_config(
+        WorldModelTrainingConfig,
+        ["preset=smoke", "task=reach", f"data={data}", f"out={out}", f"policy_checkpoint={policy_path}", "progress=false"],
+        WORLD_MODEL_PRESETS,
+    )
+    return cfg, train_world_model(cfg), policy_path

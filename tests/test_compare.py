@@ -28,14 +28,14 @@ def test_decision_summary_reads_one_value_per_decision_from_a_receding_horizon_r
     from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
 
     scores = torch.tensor([[0.5, 0.7, 0.6], [0.4, 0.3, 0.2], [0.1, 0.1, 0.4]])
-    chosen = torch.tensor([1, 0, 2])
+    chosen = torch.tensor([2, 0, 2])  # the first decision executes a candidate that is not the arg-max
     steps = torch.arange(20) // 8  # 20 steps, a decision every 8: 0, 8 and 16
     rollout = TensorDict({CANDIDATE_SCORES: scores[steps][None], CHOSEN_CANDIDATE: chosen[steps][None]}, [1, 20])
     summary = decision_summary(rollout, action_steps=8)
     assert summary["decisions"] == 3
     assert summary["clean_chosen"] == pytest.approx(1 / 3, abs=1e-4)
     assert summary["clean_score"] == pytest.approx(1 / 3, abs=1e-4)
-    assert summary["chosen_margin"] == pytest.approx(0.5 / 3, abs=1e-4)
+    assert summary["chosen_margin"] == pytest.approx((0.1 + 0.0 + 0.3) / 3, abs=1e-4)  # the executed candidate's margin
     assert summary["score_spread"] == pytest.approx((0.1 + 0.1 + 0.3 / 3**0.5) / 3, abs=1e-4)  # std([.1, .1, .4]) = 0.3 / sqrt(3)
     pooled = pool_decision_summaries([summary, {**summary, "decisions": 1, "clean_chosen": 1.0}])
     assert pooled["decisions"] == 4 and pooled["clean_chosen"] == pytest.approx((3 / 3 + 1.0) / 4, abs=1e-4)

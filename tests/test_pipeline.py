@@ -26,16 +26,23 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     assert "[evaluation]" in (tmp_path / "logs" / f"reach_{policy}_seed0.log").read_text()
     results = tmp_path / "results" / "reach" / f"{policy}_seed0"
     data = json.loads((results / "results.json").read_text())
-    assert set(data["success"]) == {"base policy", "DALI-R"}
+    assert list(data["success"]) == ["base policy", "DALI-R", "DALI-R argmax", "random candidate"]
     assert all(len(r["records"]) == 2 for r in data["success"].values())
     assert (results / "imagination.png").stat().st_size > 0
-    assert "| + DALI-R" in (results / "results.md").read_text() and "clean candidate kept in" in (results / "results.md").read_text()
+    assert "| DALI-R |" in (results / "results.md").read_text() and "clean candidate kept in" in (results / "results.md").read_text()
+    # the rule chosen on validation episodes is stored in the world model, and DALI-R used it
+    from torchrl_dalir.training import load_world_model
+
+    calibration = json.loads((tmp_path / "calibration" / "reach" / f"{policy}_seed0" / "calibration.json").read_text())
+    assert calibration["seed"] == 1 and calibration["episodes"] == 1
+    world_model_path = tmp_path / "world_models" / policy / "reach" / "seed0" / "world_model.pt"
+    assert load_world_model(world_model_path).selection.name == calibration["chosen"] == data["success"]["DALI-R"]["selection"]
+    assert data["success"]["DALI-R argmax"]["selection"] == "argmax(state)"
     capsys.readouterr()
     run_example("train_dp3_wm.py", args, monkeypatch)
-    assert capsys.readouterr().out.count("done before") == 5
+    assert capsys.readouterr().out.count("done before") == 6
     # examples/evaluate.py on the job's checkpoints replays the job's evaluation exactly (same thread count)
     policy_path = tmp_path / "policies" / "reach" / f"{policy}_seed0" / "checkpoint.pt"
-    world_model_path = tmp_path / "world_models" / policy / "reach" / "seed0" / "world_model.pt"
     run_example("evaluate.py", [f"policy={policy_path}", f"world_model={world_model_path}", "episodes=2", "num_candidates=4",
                                 f"out={tmp_path / 'evaluation'}"], monkeypatch)
     replay = json.loads((tmp_path / "evaluation" / "evaluation.json").read_text())["success"]
@@ -59,6 +66,13 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     assert summary[0]["base_only"] == sum(b["success"] and not d["success"] for b, d in pairs)
     assert summary[0]["dalir_only"] == sum(d["success"] and not b["success"] for b, d in pairs)
     assert (tmp_path / f"summary_{policy}.png").stat().st_size > 0
+    trusted = json.loads((tmp_path / "trusted_selection.json").read_text())  # the trusted-selection table's data
+    reach = trusted["tasks"]["reach"]
+    assert (reach["seeds"], reach["episodes"], reach["rules"]) == (1, 2, {"0": calibration["chosen"]})
+    for key, method in (("base", "base policy"), ("default", "DALI-R"), ("argmax", "DALI-R argmax"), ("random", "random candidate")):
+        assert reach[key] == 100 * data["success"][method]["success_rate"]
+    assert trusted["default_rule"] == calibration["chosen"].split("(")[0] and trusted["mean_gain"] == round(reach["default"] - reach["base"], 1)
+    assert (tmp_path / f"trusted_selection_{policy}.png").stat().st_size > 0
     # an interrupted policy training (its checkpoint short of the last step) is resumed, not skipped
     checkpoint = tmp_path / "policies" / "reach" / f"{policy}_seed0" / "checkpoint.pt"
     state = torch.load(checkpoint, weights_only=False)
@@ -66,12 +80,12 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     torch.save(state, checkpoint)
     run_example("train_dp3_wm.py", args, monkeypatch)
     out = capsys.readouterr().out
-    assert "[policy] done before" not in out and out.count("done before") == 4
+    assert "[policy] done before" not in out and out.count("done before") == 5
     assert torch.load(checkpoint, weights_only=False)["step"] == state["num_steps"]
     # redoing a stage starts it and every later stage from scratch, keeping the previous runs aside
     run_example("train_dp3_wm.py", [*args, "redo=[world_model]"], monkeypatch)
     out = capsys.readouterr().out
-    assert "[world_model] redo" in out and "[evaluation] redo" in out and out.count("done before") == 3
+    assert "[world_model] redo" in out and "[calibration] redo" in out and "[evaluation] redo" in out and out.count("done before") == 3
     assert len(list((tmp_path / "world_models" / policy / "reach").glob("seed0.replaced-*"))) == 1
 
 

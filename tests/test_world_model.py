@@ -69,21 +69,6 @@ def test_scorer_metrics_exact_values():
     assert overconfident["calibration_error"] == pytest.approx(0.4)  # one bin: says 0.9, is 0.5
 
 
-@pytest.fixture(scope="module")
-def trained_world_model(collected, trained_policy, tmp_path_factory):
-    _, policy_path = trained_policy
-    data = tmp_path_factory.mktemp("wm_data")
-    (data / "reach").mkdir()
-    (data / "reach" / "mixed").symlink_to(collected.root)
-    out = tmp_path_factory.mktemp("world_models")
-    cfg = parse_config(
-        WorldModelTrainingConfig,
-        ["preset=smoke", "task=reach", f"data={data}", f"out={out}", f"policy_checkpoint={policy_path}", "progress=false"],
-        WORLD_MODEL_PRESETS,
-    )
-    return cfg, train_world_model(cfg), policy_path
-
-
 def test_world_model_checkpoint_and_metrics(trained_world_model, collected, monkeypatch):
     from torchrl_dalir.training import world_model as stage
     from torchrl_dalir.training.world_model import encode_rows, split_trajectories
@@ -101,6 +86,22 @@ def test_world_model_checkpoint_and_metrics(trained_world_model, collected, monk
     brier = ((probabilities - rows[keys.COMPLETION_TARGET][held_rows]) ** 2).mean().item()
     assert parts.metrics["brier"] == pytest.approx(brier, abs=1e-6) and parts.metrics["held_out_rows"] == held_rows.sum()
     assert parts.metrics["wm_mse"] != parts.metrics["no_change_mse"]
+    # the scorer ensemble's held-out metrics are the loaded ensemble's, on imagined latents of
+    # the held-out windows' recorded chunks
+    from torchrl_dalir.data import TrajectoryDataset
+    from torchrl_dalir.data.windows import TrajectoryWindows
+    from torchrl_dalir.objectives.latent_dynamics import LATENT
+    from torchrl_dalir.training.world_model import held_out_imagined_metrics
+
+    kept = (keys.ACTION, keys.IS_FINAL, keys.TRAJECTORY_ID, keys.STEP, keys.COMPLETION_TARGET, keys.TERMINAL_LABEL, keys.QUALITY)
+    latent_rows = TensorDict({LATENT: encode_rows(parts.encoder, rows), **{k: rows[k] for k in kept}}, [len(rows)])
+    windows = TrajectoryWindows(TrajectoryDataset(collected.root, collected.meta, latent_rows), obs_steps=1, horizon=8, future_offset=8, observation_keys=(LATENT,))
+    batch = windows[held[latent_rows[keys.TRAJECTORY_ID][windows.anchors]].nonzero().squeeze(-1)]
+    batch[LATENT] = batch[LATENT][:, -1]
+    imagined = held_out_imagined_metrics(parts.scorer, parts.ensemble, parts.world_model, batch)
+    for name, value in imagined.items():
+        assert parts.metrics[name] == pytest.approx(value, abs=1e-6), name
+    assert imagined["ensemble_std"] > 0
     monkeypatch.setattr(stage, "load_policy", lambda *a, **k: pytest.fail("a finished run was redone"))
     assert train_world_model(cfg) == path
 

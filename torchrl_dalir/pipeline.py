@@ -14,13 +14,15 @@ from torchrl_dalir.config import check_choice
 from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
 from torchrl_dalir.data.config import CollectionConfig
 from torchrl_dalir.envs.tasks import get_task
+from torchrl_dalir.evaluation.calibration import GRIDS
+from torchrl_dalir.evaluation.compare import METHODS
 from torchrl_dalir.modules.config import POLICY_KINDS
 from torchrl_dalir.training.policy import PRESETS as POLICY_PRESETS
 from torchrl_dalir.training.policy import PolicyTrainingConfig
 from torchrl_dalir.training.world_model import PRESETS as WORLD_MODEL_PRESETS
 from torchrl_dalir.training.world_model import WorldModelTrainingConfig
 
-STAGES = ("demos", "policy", "mixed", "world_model", "evaluation")
+STAGES = ("demos", "policy", "mixed", "world_model", "calibration", "evaluation")
 
 
 @dataclass
@@ -31,7 +33,12 @@ class PipelineConfig:
         live in ``<out>/data/<task>/demos``; ``seed`` varies the policy, mixed data and world model).
     policy: the base policy's backbone (``fm`` or ``dp``).
     base_policy_rollouts: trajectories of the trained base policy added to the mixed data.
-    eval_episodes, eval_seed: the evaluation episodes, shared by the base policy and DALI-R.
+    eval_episodes, eval_seed: the test episodes, shared by every method (``eval_methods``: the
+        base policy, DALI-R with the calibrated rule, with the paper's arg-max, and the
+        random-candidate control; see :func:`~torchrl_dalir.evaluation.compare.evaluate_checkpoints`).
+    calibration_episodes, calibration_seed: the validation episodes on which the selection
+        rule's setting is chosen (:mod:`torchrl_dalir.evaluation.calibration`); never the test seed.
+        ``calibration_episodes=0`` keeps the paper's arg-max.
     num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability.
     redo: stages to run again from scratch even if their artifact exists
         (``redo=[world_model]``); later stages are redone too, and each previous run's
@@ -48,6 +55,10 @@ class PipelineConfig:
     base_policy_rollouts: int = 100
     eval_episodes: int = 50
     eval_seed: int = 0
+    eval_methods: list[str] = field(default_factory=lambda: ["base", "dalir", "argmax", "random"])
+    calibration_episodes: int = 30
+    calibration_seed: int = 1
+    calibration_grid: str = "margin"  # margin (the default rule's settings) | all (and the other rules, for comparison)
     num_candidates: int = 32
     dropout: float = 0.2
     redo: list[str] = field(default_factory=list)
@@ -58,6 +69,11 @@ class PipelineConfig:
     def __post_init__(self):
         get_task(self.task)  # an unknown name fails here, not after the demos
         check_choice("policy", self.policy, POLICY_KINDS)
+        for method in self.eval_methods:
+            check_choice("eval_methods entry", method, METHODS)
+        check_choice("calibration_grid", self.calibration_grid, GRIDS)
+        if self.calibration_seed == self.eval_seed:
+            raise ValueError(f"calibration_seed must differ from eval_seed ({self.eval_seed}): the rule is chosen on validation, not test, episodes")
         unknown = set(self.redo) - set(STAGES)
         if unknown:
             raise ValueError(f"unknown stages {sorted(unknown)}; stages are {STAGES}")
@@ -76,9 +92,15 @@ class PipelineConfig:
         self.policy_training.device = self.world_model.device = self.device
         self.world_model.policy_checkpoint = str(self.policy_training.run_dir() / "checkpoint.pt")
 
-    def results_dir(self) -> Path:
+    def run_name(self) -> str:
         oracle = "" if self.world_model.scorer_target == "completion" else f"_{self.world_model.scorer_target}"
-        return Path(self.out) / "results" / self.task / f"{self.policy}_seed{self.seed}{oracle}"
+        return f"{self.policy}_seed{self.seed}{oracle}"
+
+    def calibration_dir(self) -> Path:
+        return Path(self.out) / "calibration" / self.task / self.run_name()
+
+    def results_dir(self) -> Path:
+        return Path(self.out) / "results" / self.task / self.run_name()
 
 
 def _nest(preset: str) -> dict:
@@ -92,5 +114,5 @@ def _nest(preset: str) -> dict:
 PRESETS: dict[str, dict] = {
     "paper": {**_nest("paper"), "base_policy_rollouts": 200, "eval_episodes": 100},
     "cpu": _nest("cpu"),
-    "smoke": {**_nest("smoke"), "base_policy_rollouts": 2, "eval_episodes": 2, "num_candidates": 4},
+    "smoke": {**_nest("smoke"), "base_policy_rollouts": 2, "eval_episodes": 2, "num_candidates": 4, "calibration_episodes": 1},
 }

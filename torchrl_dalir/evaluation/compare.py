@@ -14,9 +14,10 @@ from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.reranking import PointDropout, RandomCandidateActor, RerankingActor
 from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
+from torchrl_dalir.reranking.selection import SelectionConfig
 
-BASE, DALIR, RANDOM = "base policy", "DALI-R", "random candidate"
-METHODS = {"base": BASE, "dalir": DALIR, "random": RANDOM}  # short names for command lines
+BASE, DALIR, ARGMAX, RANDOM = "base policy", "DALI-R", "DALI-R argmax", "random candidate"
+METHODS = {"base": BASE, "dalir": DALIR, "argmax": ARGMAX, "random": RANDOM}  # short names for command lines
 
 
 def evaluate_checkpoints(
@@ -30,14 +31,17 @@ def evaluate_checkpoints(
     dropout: float = 0.2,
     actor_seed: int = 0,
     methods: list[str] | None = None,
+    selection: SelectionConfig | None = None,
     progress: bool = True,
 ) -> dict[str, dict]:
     """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` is given,
     with 8-of-16 receding-horizon execution on the same ``episodes`` evaluation episodes.
 
-    ``methods`` picks among ``"base"``, ``"dalir"`` and ``"random"`` (:class:`RandomCandidateActor`,
-    DALI-R's candidates chosen at random); by default the base policy, and DALI-R if there is a
-    world model. Returns ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with
+    ``methods`` picks among ``"base"``, ``"dalir"`` (DALI-R choosing by ``selection``, by default
+    the rule stored in the world-model checkpoint), ``"argmax"`` (DALI-R with the paper's arg-max
+    of the state scorer, whatever the checkpoint names) and ``"random"``
+    (:class:`RandomCandidateActor`, DALI-R's candidates chosen at random); by default the base
+    policy, and DALI-R if there is a world model. Returns ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with
     ``success_rate``, ``episodes``, ``seconds`` and per-episode ``records``; the reranking
     methods' records describe their choices in ``details`` (:func:`decision_summary`).
     """
@@ -54,7 +58,8 @@ def evaluate_checkpoints(
     if world_model_path is not None:
         load_checkpoint(world_model_path, "world_model")  # fails now, not after the base policy's episodes
     steps = (policy.config.obs_steps, policy.config.action_steps)
-    reranking = {"dalir": RerankingActor, "random": RandomCandidateActor}
+    reranking = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
+    rules = {"dalir": {"selection": selection} if selection is not None else {}, "argmax": {"selection": SelectionConfig()}, "random": {}}
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}
     rows = {}
     for method in methods:
@@ -64,13 +69,15 @@ def evaluate_checkpoints(
             actor, describe = receding_horizon(policy, *steps), None
         else:
             chooser = reranking[method].on_policy(
-                policy, world_model_path, device, num_candidates=num_candidates, candidates=PointDropout(dropout), seed=actor_seed
+                policy, world_model_path, device, num_candidates=num_candidates, candidates=PointDropout(dropout), seed=actor_seed,
+                **rules[method],
             )
             actor = receding_horizon(chooser, *steps, decision_keys=[CANDIDATE_SCORES, CHOSEN_CANDIDATE])
             describe = partial(decision_summary, action_steps=policy.config.action_steps)
         name = METHODS[method]
         result = evaluate(actor, policy.task, episodes, seed, progress=progress, describe=describe, **env_kwargs)
         rows[name] = {
+            **({"selection": chooser.selection.name} if method in ("dalir", "argmax") else {}),
             "success_rate": result.success_rate,
             "episodes": episodes,
             "seconds": round(time.perf_counter() - start, 1),
@@ -109,7 +116,7 @@ def decision_summary(rollout: TensorDictBase, action_steps: int) -> dict:
         "decisions": chosen.numel(),
         "clean_chosen": (chosen == 0).float().mean().item(),
         "clean_score": clean.mean().item(),
-        "chosen_margin": (scores.max(-1).values - clean).mean().item(),
+        "chosen_margin": (scores.gather(-1, chosen.unsqueeze(-1)).squeeze(-1) - clean).mean().item(),
         "score_spread": scores.std(-1).mean().item(),
     }
 

@@ -72,16 +72,20 @@ def plot_imagination_diagnostics(curves: list[dict], path: str | Path, title: st
     return _save(fig, path)
 
 
-def plot_success_by_task(table: list[dict], path: str | Path, title: str = "") -> Path:
-    """Grouped bars of base-policy and DALI-R success per task (mean over seeds, std as error bars,
-    one dot per seed). ``table`` rows: ``task``, ``base`` and ``dalir`` (lists of per-seed rates)."""
-    fig, ax = plt.subplots(figsize=(1.8 + 1.4 * len(table), 3.2), dpi=90)
+def plot_success_by_task(table: list[dict], path: str | Path, title: str = "",
+                         methods: tuple[tuple[str, str], ...] = (("base", "base policy"), ("dalir", "+ DALI-R"))) -> Path:
+    """Grouped bars of each method's success per task (mean over seeds, std as error bars, one dot
+    per seed). ``table`` rows: ``task`` and, for every ``(key, label)`` of ``methods``, ``key``
+    (a list of per-seed rates)."""
+    fig, ax = plt.subplots(figsize=(1.8 + 0.7 * len(methods) * len(table), 3.2), dpi=90)
     x = np.arange(len(table))
-    for offset, key, label in ((-0.18, "base", "base policy"), (0.18, "dalir", "+ DALI-R")):
+    width = 0.8 / len(methods)
+    for i, (key, label) in enumerate(methods):
+        offset = (i - (len(methods) - 1) / 2) * width
         rates = [100 * np.asarray(row[key]) for row in table]
-        ax.bar(x + offset, [r.mean() for r in rates], 0.34, yerr=[r.std() for r in rates], capsize=3, label=label, alpha=0.8)
-        for i, r in enumerate(rates):
-            ax.scatter(np.full(len(r), x[i] + offset), r, color="k", s=8, zorder=3)
+        ax.bar(x + offset, [r.mean() for r in rates], width * 0.95, yerr=[r.std() for r in rates], capsize=3, label=label, alpha=0.8)
+        for j, r in enumerate(rates):
+            ax.scatter(np.full(len(r), x[j] + offset), r, color="k", s=8, zorder=3)
     ax.set_xticks(x, [row["task"] for row in table])
     ax.set_ylabel("success (%)")
     ax.set_ylim(0, 100)

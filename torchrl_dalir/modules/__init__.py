@@ -5,7 +5,7 @@ from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 from torchrl_dalir.modules.policies import ChunkPolicy3D, DiffusionPolicy3D, FlowMatchingPolicy3D, make_policy
 from torchrl_dalir.modules.unet import ConditionalUnet1D
-from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, TaskCompletionScorer
+from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
 
 __all__ = [
     "ChunkPolicy3D",
@@ -17,6 +17,7 @@ __all__ = [
     "MinMaxNormalizer",
     "PointCloudEncoder",
     "PolicyConfig",
+    "ScorerEnsemble",
     "StateEncoder",
     "TaskCompletionScorer",
     "make_policy",

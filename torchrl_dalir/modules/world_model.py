@@ -7,6 +7,8 @@
   ``s_hat_{t+k} = s_t + W(s_t, a_{t:t+k})``, with a Transformer encoder over the latent token and
   one token per action.
 - :class:`TaskCompletionScorer` gives the logit of eventual task completion from a latent.
+- :class:`ScorerEnsemble` stacks several scorers, trained on imagined latents, whose
+  disagreement tells how far a candidate's score can be trusted.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ from __future__ import annotations
 import copy
 
 import torch
+from tensordict import TensorDict
+from tensordict.nn import EnsembleModule, TensorDictModule
 from torch import nn
 
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
@@ -121,3 +125,57 @@ class TaskCompletionScorer(nn.Module):
 
     def forward(self, latent: torch.Tensor) -> torch.Tensor:
         return self.net(latent).squeeze(-1)
+
+
+class _EnsembleModule(EnsembleModule):
+    """tensordict's ``EnsembleModule``, made picklable and deep-copyable: it keeps a vmapped
+    function bound to itself, which a copy would otherwise share with the original."""
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state.pop("vmapped_forward", None)
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self.vmapped_forward = torch.vmap(self._func_module_call, 0)  # as built with expand_input=False
+
+
+class ScorerEnsemble(nn.Module):
+    """``members`` task-completion scorers with independent initialisations, evaluated in one
+    vectorised call (tensordict's :class:`~tensordict.nn.EnsembleModule`). During training each
+    member draws its own random batches (deep-ensemble style; no bootstrap resampling).
+
+    DALI-R trains it on *imagined* latents of recorded chunks, ``s_hat_{t+k} = s_t + W(s_t,
+    a_{t:t+k})``, against the completion target at ``t + k``: a value of the state and the chunk
+    whose training inputs match what it scores at inference, and whose members' disagreement
+    measures how far a candidate's score can be trusted.
+
+    Example:
+        >>> ensemble = ScorerEnsemble(128, hidden=32, members=5)
+        >>> ensemble(torch.randn(7, 128)).shape       # every member scores every latent
+        torch.Size([5, 7])
+        >>> ensemble(torch.randn(5, 7, 128), per_member=True).shape   # one batch per member
+        torch.Size([5, 7])
+    """
+
+    LATENT_KEY, LOGIT_KEY = "latent", "logit"
+
+    def __init__(self, latent_dim: int, hidden: int = 256, members: int = 5):
+        super().__init__()
+        if members < 1:
+            raise ValueError(f"an ensemble needs at least one member, got {members}")
+        member = TensorDictModule(TaskCompletionScorer(latent_dim, hidden), in_keys=[self.LATENT_KEY], out_keys=[self.LOGIT_KEY])
+        self.ensemble = _EnsembleModule(member, members, expand_input=False)
+        self.ensemble.module.requires_grad_(False)  # the template: only the stacked copies are used
+        self.latent_dim, self.members = latent_dim, members
+
+    def forward(self, latent: torch.Tensor, per_member: bool = False) -> torch.Tensor:
+        """Logits ``[E, ...]``: of every member on latents ``[..., L]``, or (``per_member``) of
+        member ``e`` on ``latent[e]`` for latents ``[E, ..., L]``."""
+        if latent.shape[-1] != self.latent_dim or (per_member and latent.shape[0] != self.members):
+            raise ValueError(f"expected latents [{self.members if per_member else '...'}, ..., {self.latent_dim}], got {tuple(latent.shape)}")
+        if not per_member:
+            latent = latent.expand(self.members, *latent.shape)
+        inputs = TensorDict({self.LATENT_KEY: latent}, batch_size=latent.shape[:-1])
+        return self.ensemble(inputs).get(self.LOGIT_KEY)

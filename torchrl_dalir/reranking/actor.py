@@ -10,20 +10,23 @@ from tensordict.nn import TensorDictModuleBase
 
 from torchrl_dalir import keys
 from torchrl_dalir.modules.policies import ChunkPolicy3D
-from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, TaskCompletionScorer
+from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
 from torchrl_dalir.reranking.candidates import PointDropout
+from torchrl_dalir.reranking.selection import SelectionConfig, select
 
-CANDIDATE_SCORES = ("dalir", "candidate_scores")  # [..., K] sigmoid(C(s_hat)) of every candidate
+CANDIDATE_SCORES = ("dalir", "candidate_scores")  # [..., K] sigmoid(C(s_hat)) of every candidate (ensemble mean)
 CHOSEN_CANDIDATE = ("dalir", "chosen_candidate")  # [...] index of the executed candidate (0 = clean)
 
 
 class RerankingActor(TensorDictModuleBase):
-    """Samples candidate chunks from a frozen policy, imagines and scores each, keeps the best.
+    """Samples candidate chunks from a frozen policy, imagines and scores each, executes one.
 
     At each decision: build ``num_candidates`` perturbed policy inputs (candidate 0 is always
     the clean observation), sample all chunks in one batched policy call, imagine each chunk's
     executed part with one world-model step from the current latent, score the imagined latents,
-    and write the arg-max chunk to ``action_chunk`` (plus every score and the chosen index).
+    choose by the ``selection`` rule (:mod:`~torchrl_dalir.reranking.selection`; the paper's is
+    the arg-max) and write the chosen chunk to ``action_chunk`` (plus every score and the
+    chosen index).
     Wrap it with :func:`~torchrl_dalir.modules.receding_horizon.receding_horizon` exactly like
     the base policy to execute 8 of 16 actions per decision.
 
@@ -35,6 +38,11 @@ class RerankingActor(TensorDictModuleBase):
         candidates: the candidate generator (default :class:`PointDropout` ``(0.2)``; or
             :class:`~torchrl_dalir.reranking.candidates.GaussianObservationNoise`).
         seed: seeds candidate perturbations and policy noise, so decisions are reproducible.
+        ensemble: the scorer ensemble trained on imagined latents (needed by
+            ``selection.scorer="ensemble"``).
+        selection: the selection rule (default: the paper's arg-max of the state scorer).
+            :meth:`from_checkpoints` uses the rule stored in the world-model checkpoint by
+            ``examples/calibrate_selection.py`` unless one is passed.
     """
 
     in_keys = [keys.POINT_CLOUD, keys.AGENT_POS]
@@ -50,6 +58,8 @@ class RerankingActor(TensorDictModuleBase):
         num_candidates: int = 32,
         candidates=None,
         seed: int = 0,
+        ensemble: ScorerEnsemble | None = None,
+        selection: SelectionConfig | None = None,
     ):
         super().__init__()
         if num_candidates < 1:
@@ -60,9 +70,14 @@ class RerankingActor(TensorDictModuleBase):
             raise ValueError(f"the world model imagines {world_model.action_steps} actions; the policy executes {policy.config.action_steps}")
         if world_model.latent_dim != encoder.latent_dim:
             raise ValueError("the world model and the latent encoder disagree on the latent size")
-        self.policy, self.encoder, self.world_model, self.scorer = policy, encoder, world_model, scorer
-        for module in (policy, encoder, world_model, scorer):
-            module.eval().requires_grad_(False)
+        self.selection = selection if selection is not None else SelectionConfig()
+        if self.selection.scorer == "ensemble" and ensemble is None:
+            raise ValueError(f"selection {self.selection.name} needs a scorer ensemble; this world model has none "
+                             "(checkpoints written before version 0.2.0 have none: retrain the world-model stage)")
+        self.policy, self.encoder, self.world_model, self.scorer, self.ensemble = policy, encoder, world_model, scorer, ensemble
+        for module in (policy, encoder, world_model, scorer, ensemble):
+            if module is not None:
+                module.eval().requires_grad_(False)
         self.num_candidates = num_candidates
         self.candidates = candidates if candidates is not None else PointDropout(0.2)
         self.seed = seed
@@ -79,13 +94,15 @@ class RerankingActor(TensorDictModuleBase):
     @classmethod
     def on_policy(cls, policy: ChunkPolicy3D, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
         """Wraps an already loaded policy with the world model trained on top of it; refuses a
-        world model of another task."""
+        world model of another task. The selection rule is the checkpoint's unless
+        ``selection=`` is passed."""
         from torchrl_dalir.training.world_model import load_world_model
 
         parts = load_world_model(world_model_path, device)
         if parts.task != policy.task:
             raise ValueError(f"the world model at {world_model_path} is for task {parts.task!r}; the policy is for {policy.task!r}")
-        return cls(policy, parts.encoder, parts.world_model, parts.scorer, **kwargs)
+        kwargs.setdefault("selection", parts.selection)
+        return cls(policy, parts.encoder, parts.world_model, parts.scorer, ensemble=parts.ensemble, **kwargs)
 
     @torch.no_grad()
     def imagine(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
@@ -96,16 +113,31 @@ class RerankingActor(TensorDictModuleBase):
         return self.world_model.imagine(latent.unsqueeze(1).expand(-1, chunks.shape[1], -1), executed)
 
     @torch.no_grad()
+    def member_scores(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
+        """Completion probabilities ``[B, E, K]`` of chunks ``[B, K, H, A]`` by each of the ``E``
+        members of the selection's scorer (``E = 1`` for the state scorer)."""
+        imagined = self.imagine(cloud, agent_pos, chunks)
+        if self.selection.scorer == "ensemble":
+            return torch.sigmoid(self.ensemble(imagined)).transpose(0, 1)
+        return torch.sigmoid(self.scorer(imagined)).unsqueeze(1)
+
+    @torch.no_grad()
     def score(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
-        """Completion probabilities ``[B, K]`` of chunks ``[B, K, H, A]`` from observations ``[B, To, ...]``."""
-        return torch.sigmoid(self.scorer(self.imagine(cloud, agent_pos, chunks)))
+        """Completion probabilities ``[B, K]`` (the members' mean) of chunks ``[B, K, H, A]``
+        from observations ``[B, To, ...]``."""
+        return self.member_scores(cloud, agent_pos, chunks).mean(1)
+
+    @torch.no_grad()
+    def sample_candidates(self, cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
+        """Candidate chunks ``[B, K, H, A]``; candidate 0 comes from the clean observation."""
+        cond = self.candidates.conditions(self.policy, cloud, agent_pos, self.num_candidates, self.generator)
+        return self.policy.sample(cond, self.generator)
 
     @torch.no_grad()
     def propose(self, cloud: torch.Tensor, agent_pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Every candidate chunk ``[B, K, H, A]`` and its score ``[B, K]`` for observations
         ``[B, To, ...]``; candidate 0 comes from the clean observation."""
-        cond = self.candidates.conditions(self.policy, cloud, agent_pos, self.num_candidates, self.generator)
-        chunks = self.policy.sample(cond, self.generator)
+        chunks = self.sample_candidates(cloud, agent_pos)
         return chunks, self.score(cloud, agent_pos, chunks)
 
     @torch.no_grad()
@@ -114,9 +146,10 @@ class RerankingActor(TensorDictModuleBase):
         self.policy.check_observation(cloud, agent_pos)
         batch = cloud.shape[:-3]
         cloud, agent_pos = cloud.reshape(-1, *cloud.shape[-3:]), agent_pos.reshape(-1, *agent_pos.shape[-2:])
-        chunks, scores = self.propose(cloud, agent_pos)
-        best = scores.argmax(-1)
+        chunks = self.sample_candidates(cloud, agent_pos)
+        members = self.member_scores(cloud, agent_pos, chunks)
+        best = select(members, self.selection, self.generator)
         chosen = chunks[torch.arange(len(best)), best]
         tensordict.set(keys.ACTION_CHUNK, chosen.reshape(*batch, *chosen.shape[1:]))
-        tensordict.set(CANDIDATE_SCORES, scores.reshape(*batch, -1))
+        tensordict.set(CANDIDATE_SCORES, members.mean(1).reshape(*batch, -1))
         return tensordict.set(CHOSEN_CANDIDATE, best.reshape(batch))

@@ -16,6 +16,10 @@ class RandomCandidateActor(RerankingActor):
     probabilities.
     """
 
+    def __init__(self, *args, **kwargs):
+        kwargs.pop("selection", None)  # always the arg-max of the random draws
+        super().__init__(*args, **kwargs)
+
     @torch.no_grad()
-    def score(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
-        return torch.rand(chunks.shape[:2], generator=self.generator).to(chunks.device)
+    def member_scores(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
+        return torch.rand(chunks.shape[:2], generator=self.generator).to(chunks.device).unsqueeze(1)

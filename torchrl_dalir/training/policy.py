@@ -21,6 +21,7 @@ from torchrl_dalir.modules.config import POLICY_KINDS
 from torchrl_dalir.objectives import ConsistencyFlowMatchingLoss, DiffusionLoss, FlowMatchingLoss
 from torchrl_dalir.training.logging import make_logger
 from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint
+from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
 
 
 @dataclass
@@ -39,7 +40,7 @@ class PolicyTrainingConfig:
     batch_size: int = 128
     epochs: int = 3000  # used when num_steps is 0: epochs over the demo windows
     num_steps: int = 0
-    bf16: bool = False  # bfloat16 autocast (the point encoder dominates a CPU step)
+    precision: str = "auto"  # auto (bf16 autocast where the hardware runs it natively) | bf16 | fp32
     checkpoint_every: int = 500
     log_every: int = 50
     wandb: bool = True  # offline unless the user has set wandb up (WANDB_MODE)
@@ -48,6 +49,7 @@ class PolicyTrainingConfig:
     def __post_init__(self):
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("policy", self.policy, POLICY_KINDS)
+        check_choice("precision", self.precision, PRECISIONS)
 
     def run_dir(self) -> Path:
         return Path(self.out) / self.task / f"{self.policy}_seed{self.seed}"
@@ -65,7 +67,6 @@ PRESETS: dict[str, dict] = {
         "optim": {"lr": 3e-4, "warmup_steps": 100},
         "batch_size": 64,
         "num_steps": 2000,
-        "bf16": True,
     },
     # Seconds, for tests.
     "smoke": {
@@ -76,6 +77,7 @@ PRESETS: dict[str, dict] = {
         "checkpoint_every": 10,
         "log_every": 10,
         "wandb": False,
+        "precision": "fp32",  # the same numbers on every machine
     },
 }
 
@@ -131,7 +133,7 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
         checkpoint_every=cfg.checkpoint_every,
         log=logger,
         log_every=cfg.log_every,
-        autocast_dtype=torch.bfloat16 if cfg.bf16 else None,
+        autocast_dtype=autocast_dtype(cfg.precision, cfg.device),
         progress=cfg.progress,
     )
     return run_dir / "checkpoint.pt"

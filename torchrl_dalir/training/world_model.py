@@ -1,12 +1,18 @@
 """Training DALI-R's latent imagination module on the mixed-quality data, the policy frozen.
 
-Two stages, each resumable:
+Three stages, each resumable:
 
 1. **Scorer**: the latent encoder (a copy of the policy's encoders) and the task-completion
    scorer are trained together with binary cross-entropy on the discounted Monte-Carlo targets.
 2. **World model**: the encoder is frozen, every row's latent is computed once, and the world
    model learns ``s_{t+k} - s_t`` from ``(s_t, a_{t:t+k})``. Frozen targets cannot collapse; the
    held-out MSE is reported next to the "no change" predictor ``s_hat = s_t``.
+3. **Scorer ensemble**: every training window's recorded chunk is imagined once with the frozen
+   world model, and an ensemble of scorers learns the completion target at ``t + k`` from the
+   imagined latent: DALI-R scores imagined latents at inference, and the ensemble is trained on
+   imagined latents too (of the world model's own training windows, so with in-sample imagination
+   error); its members' disagreement feeds the pessimistic selection rules
+   (:mod:`torchrl_dalir.reranking.selection`).
 
 Trajectories (not rows) are split into training and held-out sets, so held-out metrics never
 see a step of a training trajectory.
@@ -27,12 +33,15 @@ from torchrl_dalir.config import check_choice, config_dict
 from torchrl_dalir.data import TrajectoryDataset, dense_reward_targets
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.envs.tasks import get_task
-from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
-from torchrl_dalir.objectives import LatentDynamicsLoss, TaskCompletionLoss
+from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, ScorerEnsemble, TaskCompletionScorer, make_policy
+from torchrl_dalir.objectives import ImaginedCompletionLoss, LatentDynamicsLoss, TaskCompletionLoss
+from torchrl_dalir.objectives.imagined_completion import IMAGINED_LATENT
 from torchrl_dalir.objectives.latent_dynamics import LATENT
+from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training.logging import make_logger
 from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint, save_checkpoint
 from torchrl_dalir.training.policy import load_policy
+from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
 
 # The scorer's training target: the sparse terminal labels' Monte-Carlo targets (the method), or
 # the simulator's dense reward-to-go (an oracle, for the ablation).
@@ -66,7 +75,12 @@ class WorldModelTrainingConfig:
     wm_epochs: int = 100
     wm_steps: int = 0  # 0: derive from wm_epochs
     wm_optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-4, betas=(0.9, 0.999), weight_decay=1e-4, warmup_steps=0))
-    bf16: bool = False
+    ensemble_members: int = 5
+    ensemble_hidden: int = 256
+    ensemble_batch_size: int = 256
+    ensemble_steps: int = 3000  # cheap: the imagined latents are computed once
+    ensemble_optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-4, betas=(0.9, 0.999), weight_decay=1e-3, warmup_steps=0))
+    precision: str = "auto"  # auto (bf16 autocast where the hardware runs it natively) | bf16 | fp32
     checkpoint_every: int = 500
     log_every: int = 50
     wandb: bool = True
@@ -75,6 +89,7 @@ class WorldModelTrainingConfig:
     def __post_init__(self):
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("scorer_target", self.scorer_target, SCORER_TARGETS)
+        check_choice("precision", self.precision, PRECISIONS)
 
     def run_dir(self) -> Path:
         suffix = "" if self.scorer_target == "completion" else f"_{self.scorer_target}"
@@ -85,10 +100,11 @@ PRESETS: dict[str, dict] = {
     "paper": {},
     # About 10 minutes on a 2-core CPU: fewer scorer steps (its encoder pass dominates), a smaller
     # world model on smaller batches (a batch-512 step of the paper's model takes ~0.6 s here).
-    "cpu": {"scorer_steps": 1000, "wm_steps": 1500, "wm_batch_size": 256, "wm_hidden": 128, "bf16": True},
+    "cpu": {"scorer_steps": 1000, "wm_steps": 1500, "wm_batch_size": 256, "wm_hidden": 128},
     "smoke": {
         "scorer_steps": 20, "scorer_batch_size": 16, "wm_steps": 20, "wm_batch_size": 16, "wm_hidden": 32, "wm_layers": 1,
-        "wm_heads": 2, "scorer_hidden": 32, "checkpoint_every": 10, "log_every": 10, "wandb": False, "held_out_fraction": 0.4,
+        "wm_heads": 2, "scorer_hidden": 32, "ensemble_members": 2, "ensemble_hidden": 16, "ensemble_steps": 20, "ensemble_batch_size": 16, "checkpoint_every": 10, "log_every": 10, "wandb": False, "held_out_fraction": 0.4,
+        "precision": "fp32",  # the same numbers on every machine
     },
 }
 
@@ -141,15 +157,16 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     held_rows = held[rows[keys.TRAJECTORY_ID]]
     train_rows = torch.nonzero(~held_rows).squeeze(-1)
     logger = make_logger(run_dir, f"{cfg.task}_world_model_seed{cfg.seed}", use_wandb=cfg.wandb, config=config_dict(cfg))
-    autocast = torch.bfloat16 if cfg.bf16 else None
+    autocast = autocast_dtype(cfg.precision, cfg.device)
 
-    def train_stage(loss_module, model, data, train_index, batch_size, steps, optim, name, autocast_dtype=None):
-        """Trains one stage on random batches of ``data[train_index]``; resumes from ``<name>.pt``."""
+    def train_stage(loss_module, model, data, train_index, batch_shape, steps, optim, name, dtype=None):
+        """Trains one stage on random batches ``[*batch_shape]`` of ``data[train_index]``;
+        resumes from ``<name>.pt``."""
         return fit(
-            loss_module, model, lambda g: data[train_index[torch.randint(len(train_index), (batch_size,), generator=g)]],
+            loss_module, model, lambda g: data[train_index[torch.randint(len(train_index), batch_shape, generator=g)]],
             steps, optim, run_dir / f"{name}.pt", lambda ema: {}, seed=cfg.seed, checkpoint_every=cfg.checkpoint_every,
             log=lambda m, s: logger({f"{name}/{k}": v for k, v in m.items()}, s), log_every=cfg.log_every,
-            autocast_dtype=autocast_dtype, progress=cfg.progress,
+            autocast_dtype=dtype, progress=cfg.progress,
         ).module
 
     # Stage 1: latent encoder + task-completion scorer.
@@ -157,7 +174,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     scorer = TaskCompletionScorer(encoder.latent_dim, cfg.scorer_hidden)
     pair = nn.ModuleDict({"encoder": encoder, "scorer": scorer}).to(cfg.device)
     scorer_steps = cfg.scorer_steps or cfg.scorer_epochs * -(-len(train_rows) // cfg.scorer_batch_size)
-    ema_pair = train_stage(TaskCompletionLoss(encoder, scorer, target_key), pair, rows, train_rows, cfg.scorer_batch_size, scorer_steps, cfg.scorer_optim, "scorer", autocast)
+    ema_pair = train_stage(TaskCompletionLoss(encoder, scorer, target_key), pair, rows, train_rows, (cfg.scorer_batch_size,), scorer_steps, cfg.scorer_optim, "scorer", autocast)
     encoder, scorer = ema_pair["encoder"].eval(), ema_pair["scorer"].eval()
 
     # Stage 2: world model on latents of the frozen encoder.
@@ -167,7 +184,8 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
         batch_size=[len(rows)],
     )
     k = policy.config.action_steps
-    windows = TrajectoryWindows(TrajectoryDataset(mixed.root, mixed.meta, latent_rows), obs_steps=1, horizon=k, future_offset=k, observation_keys=(LATENT,))
+    future_keys = (LATENT,) if target_key == keys.COMPLETION_TARGET else (LATENT, target_key)  # the ensemble's target at t + k
+    windows = TrajectoryWindows(TrajectoryDataset(mixed.root, mixed.meta, latent_rows), obs_steps=1, horizon=k, future_offset=k, observation_keys=future_keys)
     held_anchor = held[windows.dataset.rows[keys.TRAJECTORY_ID][windows.anchors]]
     train_anchors = torch.nonzero(~held_anchor).squeeze(-1)
 
@@ -181,10 +199,20 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     world_model.to(cfg.device)
     wm_steps = cfg.wm_steps or cfg.wm_epochs * -(-len(train_anchors) // cfg.wm_batch_size)
     train_windows = wm_batch(train_anchors)  # small (latents and actions only): gathered once
-    world_model = train_stage(LatentDynamicsLoss(world_model), world_model, train_windows, torch.arange(len(train_windows)), cfg.wm_batch_size, wm_steps, cfg.wm_optim, "dynamics").eval()
+    world_model = train_stage(LatentDynamicsLoss(world_model), world_model, train_windows, torch.arange(len(train_windows)), (cfg.wm_batch_size,), wm_steps, cfg.wm_optim, "dynamics").eval()
 
-    encoder, scorer, world_model = encoder.cpu(), scorer.cpu(), world_model.cpu()  # metrics and checkpoint on the CPU
+    # Stage 3: the scorer ensemble on imagined latents of the recorded chunks, against the
+    # target at t + k (each member on its own random batches).
+    imagined = TensorDict({IMAGINED_LATENT: imagine_windows(world_model, train_windows), keys.FUTURE: train_windows[keys.FUTURE]}, [len(train_windows)])
+    ensemble = ScorerEnsemble(encoder.latent_dim, cfg.ensemble_hidden, cfg.ensemble_members).to(cfg.device)
+    ensemble_loss = ImaginedCompletionLoss(ensemble)
+    ensemble_loss.set_keys(target=(keys.FUTURE, target_key))
+    ensemble = train_stage(ensemble_loss, ensemble, imagined, torch.arange(len(imagined)), (cfg.ensemble_members, cfg.ensemble_batch_size),
+                           cfg.ensemble_steps, cfg.ensemble_optim, "ensemble").eval()
+
+    encoder, scorer, world_model, ensemble = encoder.cpu(), scorer.cpu(), world_model.cpu(), ensemble.cpu()  # metrics and checkpoint on the CPU
     metrics = held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, torch.nonzero(held_anchor).squeeze(-1), wm_batch, target_key)
+    metrics.update(held_out_imagined_metrics(scorer, ensemble, world_model, wm_batch(torch.nonzero(held_anchor).squeeze(-1)), target_key))
     logger({f"held_out/{k}": v for k, v in metrics.items()}, wm_steps)
     from torchrl_dalir import __version__
 
@@ -204,6 +232,9 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
             "encoder_state": encoder.state_dict(),
             "scorer_state": scorer.state_dict(),
             "world_model_state": world_model.state_dict(),
+            "ensemble_args": dict(latent_dim=encoder.latent_dim, hidden=cfg.ensemble_hidden, members=cfg.ensemble_members),
+            "ensemble_state": ensemble.state_dict(),
+            "selection": SelectionConfig().to_dict(),  # the paper's arg-max until calibrated
             "held_out_trajectories": torch.nonzero(held).squeeze(-1).tolist(),
             "metrics": metrics,
             "library_version": __version__,
@@ -228,9 +259,37 @@ def held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windo
     return metrics
 
 
+@torch.no_grad()
+def imagine_windows(world_model: LatentWorldModel, windows: TensorDict, batch_size: int = 4096) -> torch.Tensor:
+    """``s_hat_{t+k}`` of every window's recorded chunk, ``[W, L]``."""
+    device = next(world_model.parameters()).device
+    return torch.cat([
+        world_model.imagine(part[LATENT].to(device), part[keys.ACTION_CHUNK].to(device)).cpu()
+        for part in windows.split(batch_size)
+    ])
+
+
+@torch.no_grad()
+def held_out_imagined_metrics(scorer, ensemble, world_model, batch, target_key=keys.COMPLETION_TARGET) -> dict:
+    """Brier score and calibration error, on the imagined latents of held-out windows against the
+    target at ``t + k``, of the state scorer (as DALI-R applies it) and of the ensemble's mean;
+    and the ensemble members' mean disagreement (std of their probabilities)."""
+    imagined = imagine_windows(world_model, batch)
+    target = batch[keys.FUTURE, target_key].float()
+    members = torch.sigmoid(ensemble(imagined))
+    state = _scorer_metrics(torch.sigmoid(scorer(imagined)), target)
+    mean = _scorer_metrics(members.mean(0), target)
+    return {
+        "imagined_brier_state_scorer": state["brier"], "imagined_calibration_error_state_scorer": state["calibration_error"],
+        "imagined_brier_ensemble": mean["brier"], "imagined_calibration_error_ensemble": mean["calibration_error"],
+        "ensemble_std": members.std(0, correction=0).mean().item(),
+    }
+
+
 def load_world_model(path: str | Path, device="cpu") -> SimpleNamespace:
-    """Loads ``task``, ``encoder``, ``world_model``, ``scorer``, ``metrics`` and
-    ``held_out_trajectories`` of a checkpoint."""
+    """Loads ``task``, ``encoder``, ``world_model``, ``scorer``, ``ensemble`` (``None`` in older
+    checkpoints), ``selection`` (the calibrated :class:`SelectionConfig`, or the paper's arg-max),
+    ``calibration``, ``metrics`` and ``held_out_trajectories`` of a checkpoint."""
     state = load_checkpoint(path, "world_model")
     shell = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])
     encoder = LatentEncoder.from_policy(shell)
@@ -239,11 +298,19 @@ def load_world_model(path: str | Path, device="cpu") -> SimpleNamespace:
     world_model.load_state_dict(state["world_model_state"])
     scorer = TaskCompletionScorer(encoder.latent_dim, state["scorer_hidden"])
     scorer.load_state_dict(state["scorer_state"])
+    ensemble = None  # absent from checkpoints written before version 0.2.0
+    if "ensemble_state" in state:
+        ensemble = ScorerEnsemble(**state["ensemble_args"])
+        ensemble.load_state_dict(state["ensemble_state"])
+        ensemble = ensemble.to(device).eval()
     return SimpleNamespace(
         task=state["task"],
         encoder=encoder.to(device).eval(),
         world_model=world_model.to(device).eval(),
         scorer=scorer.to(device).eval(),
+        ensemble=ensemble,
+        selection=SelectionConfig(**state.get("selection", {})),
+        calibration=state.get("calibration"),
         metrics=state["metrics"],
         policy_checkpoint=state["policy_checkpoint"],
         held_out_trajectories=state["held_out_trajectories"],

@@ -1,0 +1,180 @@
+"""Selection rules, the scorer ensemble, and calibration on validation episodes."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_dalir import RerankingActor, keys
+from torchrl_dalir.evaluation import calibration
+from torchrl_dalir.modules import ScorerEnsemble, TaskCompletionScorer
+from torchrl_dalir.objectives import ImaginedCompletionLoss
+from torchrl_dalir.reranking.selection import SelectionConfig, select
+from torchrl_dalir.training import load_world_model
+
+# one decision, 3 ensemble members, 4 candidates (0 is the clean one)
+MEMBERS = torch.tensor([[
+    [0.10, 0.30, 0.155, 0.05],
+    [0.10, 0.10, 0.145, 0.05],
+    [0.10, 0.05, 0.135, 0.05],
+]])  # candidate 1: the best mean (0.150), members disagree (std 0.108); candidate 2: 0.145, std 0.008
+
+
+def test_each_rule_makes_the_expected_choice():
+    assert select(MEMBERS, SelectionConfig("argmax")).item() == 1
+    assert select(MEMBERS, SelectionConfig("pessimistic", k=1.0)).item() == 2  # 0.137 against 0.042 for candidate 1
+    assert select(MEMBERS, SelectionConfig("pessimistic", k=0.0)).item() == 1
+    # candidate 2's advantage over the clean one is 0.045 +- 0.0082: lower bound 0.0368
+    assert select(MEMBERS, SelectionConfig("margin", k=1.0, margin=0.035)).item() == 2
+    assert select(MEMBERS, SelectionConfig("margin", k=1.0, margin=0.04)).item() == 0
+    assert select(MEMBERS, SelectionConfig("margin", k=0.0, margin=0.04)).item() == 1  # no pessimism: 0.05 > 0.04
+    assert select(MEMBERS, SelectionConfig("margin", k=1.0, margin=1.0)).item() == 0
+    worse = torch.tensor([[[0.5, 0.4, 0.3]]])  # every other candidate scores below the clean one
+    assert select(worse, SelectionConfig("margin", margin=0.0)).item() == 0
+
+
+def test_margin_without_pessimism_or_margin_is_the_argmax():
+    scores = torch.rand(500, 1, 32, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(select(scores, SelectionConfig("margin", k=0.0, margin=0.0)), select(scores, SelectionConfig("argmax")))
+
+
+def test_softmax_samples_in_proportion_and_tends_to_the_argmax():
+    scores = torch.tensor([[[0.10, 0.12, 0.11]]]).expand(20000, 1, 3)
+    config = SelectionConfig("softmax", temperature=0.01)
+    counts = torch.bincount(select(scores, config, torch.Generator().manual_seed(0)), minlength=3).float() / 20000
+    torch.testing.assert_close(counts, torch.softmax(torch.tensor([10.0, 12.0, 11.0]), 0), atol=0.01, rtol=0)
+    cold = select(scores[:100], SelectionConfig("softmax", temperature=1e-4), torch.Generator().manual_seed(0))
+    assert (cold == 1).all()
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(ValueError, match="selection rule must be one of"):
+        SelectionConfig("best")
+    with pytest.raises(ValueError, match="selection scorer must be one of"):
+        SelectionConfig(scorer="critic")
+    with pytest.raises(ValueError, match="temperature > 0"):
+        SelectionConfig("softmax", temperature=0.0)
+    with pytest.raises(ValueError, match=r"\[batch, members, candidates\]"):
+        select(torch.rand(2, 4), SelectionConfig())
+
+
+def test_ensemble_members_are_independent_scorers():
+    ensemble = ScorerEnsemble(16, hidden=8, members=3)
+    latents = torch.randn(5, 16)
+    logits = ensemble(latents)
+    for e in range(3):  # member e is a TaskCompletionScorer with the e-th set of weights
+        scorer = TaskCompletionScorer(16, hidden=8)
+        params = ensemble.ensemble.params_td[e]["module"]
+        scorer.load_state_dict({name: value for name, value in params.flatten_keys(".").items()})
+        torch.testing.assert_close(scorer(latents), logits[e])
+    assert not torch.allclose(logits[0], logits[1])  # different initialisations
+    per_member = ensemble(latents.expand(3, 5, 16), per_member=True)
+    torch.testing.assert_close(per_member, logits)
+    copy = ScorerEnsemble(16, hidden=8, members=3)
+    copy.load_state_dict(ensemble.state_dict())
+    assert torch.equal(copy(latents), logits)
+    with pytest.raises(ValueError, match="expected latents"):
+        ensemble(torch.randn(2, 5, 16), per_member=True)
+
+
+def test_imagined_completion_loss_falls():
+    torch.manual_seed(0)
+    ensemble = ScorerEnsemble(8, hidden=16, members=2)
+    latent = torch.randn(2, 64, 8)
+    target = (latent[..., 0] > 0).float()  # learnable from the latent
+    batch = TensorDict({"imagined_latent": latent, "future": {keys.COMPLETION_TARGET: target}}, [2, 64])
+    loss = ImaginedCompletionLoss(ensemble)
+    optimizer = torch.optim.Adam(ensemble.parameters(), lr=1e-2)
+    values = []
+    for _ in range(60):
+        value = loss(batch)["loss_imagined_completion"]
+        optimizer.zero_grad()
+        value.backward()
+        optimizer.step()
+        values.append(value.item())
+    assert values[-1] < 0.5 * values[0]
+
+
+def test_actor_member_scores_and_mean(trained_world_model):
+    _, wm_path, policy_path = trained_world_model
+    parts = load_world_model(wm_path)
+    assert parts.ensemble is not None and parts.selection == SelectionConfig()  # the paper's arg-max until calibrated
+    actor = RerankingActor.from_checkpoints(policy_path, wm_path, num_candidates=4, selection=SelectionConfig("pessimistic", "ensemble", k=1.0))
+    cloud, agent_pos = torch.rand(2, 2, 64, 3), torch.rand(2, 2, 4)
+    chunks = actor.sample_candidates(cloud, agent_pos)
+    members = actor.member_scores(cloud, agent_pos, chunks)
+    imagined = actor.imagine(cloud, agent_pos, chunks)
+    assert members.shape == (2, parts.ensemble.members, 4)
+    torch.testing.assert_close(members, torch.sigmoid(parts.ensemble(imagined)).transpose(0, 1))
+
+
+def test_default_argmax_makes_the_choice_of_the_paper(trained_world_model):
+    _, wm_path, policy_path = trained_world_model
+    obs = TensorDict({keys.POINT_CLOUD: torch.rand(3, 2, 64, 3), keys.AGENT_POS: torch.rand(3, 2, 4)}, [3])
+    actor = RerankingActor.from_checkpoints(policy_path, wm_path, num_candidates=8, seed=3)
+    chosen = actor(obs.clone())["dalir", "chosen_candidate"]
+    reference = RerankingActor.from_checkpoints(policy_path, wm_path, num_candidates=8, seed=3)
+    chunks, scores = reference.propose(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS])  # the state scorer's probabilities
+    torch.testing.assert_close(scores, torch.sigmoid(reference.scorer(reference.imagine(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], chunks))))
+    assert torch.equal(chosen, scores.argmax(-1))
+
+
+def test_ensemble_rule_needs_an_ensemble(trained_world_model):
+    _, wm_path, policy_path = trained_world_model
+    actor = RerankingActor.from_checkpoints(policy_path, wm_path)
+    with pytest.raises(ValueError, match="needs a scorer ensemble"):
+        RerankingActor(actor.policy, actor.encoder, actor.world_model, actor.scorer, selection=SelectionConfig("argmax", "ensemble"))
+
+
+def test_calibration_reads_only_validation_episodes_and_stores_its_choice(trained_world_model, monkeypatch, tmp_path):
+    import shutil
+
+    _, wm_path, policy_path = trained_world_model
+    path = tmp_path / "world_model.pt"
+    shutil.copy(wm_path, path)
+    with pytest.raises(ValueError, match="must not read the test episodes"):
+        calibration.calibrate(policy_path, path, seed=calibration.TEST_SEED)
+    seeds, rates = [], {"margin(ensemble, k=1, margin=1)": 0.4, "margin(ensemble, k=1, margin=0.02)": 0.6,
+                        "margin(ensemble, k=1, margin=0)": 0.6, "argmax(state)": 0.9}
+
+    def fake_evaluate(policy, world_model, *, methods, episodes, seed, selection=None, **kwargs):
+        seeds.append(seed)
+        rate = 0.4 if selection is None else rates[selection.name]
+        name = "base policy" if methods == ["base"] else "DALI-R"
+        records = [{"success": i < rate * episodes} for i in range(episodes)]
+        return {name: {"success_rate": rate, "records": records, "seconds": 0.0}}
+
+    monkeypatch.setattr(calibration, "evaluate_checkpoints", fake_evaluate)
+    grid = (SelectionConfig("margin", "ensemble", k=1.0, margin=1.0), SelectionConfig("margin", "ensemble", k=1.0, margin=0.02),
+            SelectionConfig("margin", "ensemble", k=1.0, margin=0.0), SelectionConfig("argmax", "state"))
+    record = calibration.calibrate(policy_path, path, grid=grid, episodes=10, seed=1)
+    assert set(seeds) == {1} and len(seeds) == 1 + len(grid)
+    # the best margin setting, the first of two equals; argmax(state) scored more but is not of the rule
+    assert record["chosen"] == "margin(ensemble, k=1, margin=0.02)"
+    assert record["entries"][1]["vs_base"] == {"base_only": 0, "dalir_only": 2, "p_value": 0.5}
+    parts = load_world_model(path)
+    assert parts.selection == grid[1] and parts.calibration["chosen"] == record["chosen"]
+    assert RerankingActor.from_checkpoints(policy_path, path).selection == grid[1]  # the checkpoint names the default
+    assert RerankingActor.from_checkpoints(policy_path, path, selection=SelectionConfig()).selection == SelectionConfig()
+
+
+def test_a_checkpoint_without_an_ensemble_keeps_the_paper_rule_and_refuses_ensemble_rules(trained_world_model, tmp_path):
+    _, wm_path, policy_path = trained_world_model
+    state = torch.load(wm_path, weights_only=False)
+    for key in ("ensemble_state", "ensemble_args", "selection"):  # as written before version 0.2.0
+        del state[key]
+    old = tmp_path / "old.pt"
+    torch.save(state, old)
+    parts = load_world_model(old)
+    assert parts.ensemble is None and parts.selection == SelectionConfig() and parts.calibration is None
+    assert RerankingActor.from_checkpoints(policy_path, old, num_candidates=2).selection == SelectionConfig()
+    with pytest.raises(ValueError, match="no scorer ensemble"):  # before any validation episode
+        calibration.calibrate(policy_path, old, episodes=1)
+
+
+def test_the_main_job_refuses_to_calibrate_on_its_test_episodes():
+    from torchrl_dalir.pipeline import PipelineConfig
+
+    with pytest.raises(ValueError, match="calibration_seed must differ from eval_seed"):
+        PipelineConfig(calibration_seed=0)
+    with pytest.raises(ValueError, match="calibration_grid must be one of"):
+        PipelineConfig(calibration_grid="everything")

@@ -1,0 +1,84 @@
+"""Selection rules: which of the scored candidates DALI-R executes.
+
+The paper takes the arg-max of the scores. With a learned scorer whose differences between the
+candidates of one decision are smaller than its own error, the arg-max chooses on noise and
+over-optimises the proxy (Gao et al. 2022), so the rule is a setting of its own:
+
+- ``argmax``: the highest mean score (the paper's rule);
+- ``pessimistic``: the highest ``mean - k * std`` over the scorer ensemble's members (SAILOR);
+- ``softmax``: a candidate drawn with probability ``softmax(mean / temperature)`` (V-GPS);
+- ``margin``: stay with the clean candidate (the base policy's own chunk) unless another one's
+  pessimistic *advantage* over it, ``mean - k * std`` of ``score_j - score_0`` over the members,
+  exceeds ``margin``. ``margin=inf`` is the base policy; ``k=0, margin=0`` the arg-max.
+
+Scores are completion probabilities ``[B, E, K]``: ``E`` ensemble members (1 for a single
+scorer, whose std is then 0) by ``K`` candidates, candidate 0 the clean one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+
+from torchrl_dalir.config import check_choice
+
+RULES = ("argmax", "pessimistic", "softmax", "margin")
+SCORERS = ("state", "ensemble")
+
+
+@dataclass
+class SelectionConfig:
+    """A selection rule and its settings (stored in the world-model checkpoint once calibrated).
+
+    Args:
+        rule: one of :data:`RULES`.
+        scorer: ``state`` (the paper's scorer, trained on encoded real observations, applied to
+            the imagined latent) or ``ensemble`` (the scorer ensemble trained on imagined latents
+            of recorded chunks, see :class:`~torchrl_dalir.modules.ScorerEnsemble`).
+        k: pessimism, in ensemble standard deviations (``pessimistic``, ``margin``).
+        temperature: the softmax temperature, in probability units (``softmax``).
+        margin: the advantage over the clean candidate needed to leave it (``margin``).
+    """
+
+    rule: str = "argmax"
+    scorer: str = "state"
+    k: float = 0.0
+    temperature: float = 0.01
+    margin: float = 0.0
+
+    def __post_init__(self):
+        check_choice("selection rule", self.rule, RULES)
+        check_choice("selection scorer", self.scorer, SCORERS)
+        if self.k < 0 or self.temperature <= 0 or math.isnan(self.margin):
+            raise ValueError(f"need k >= 0, temperature > 0 and a margin that is a number; got {self}")
+
+    @property
+    def name(self) -> str:
+        """A short, unique description, e.g. ``margin(ensemble, k=1, margin=0.02)``."""
+        settings = {"pessimistic": f", k={self.k:g}", "softmax": f", T={self.temperature:g}",
+                    "margin": f", k={self.k:g}, margin={self.margin:g}"}.get(self.rule, "")
+        return f"{self.rule}({self.scorer}{settings})"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def select(scores: torch.Tensor, config: SelectionConfig, generator: torch.Generator | None = None) -> torch.Tensor:
+    """The index ``[B]`` of the candidate to execute, from member scores ``[B, E, K]``."""
+    if scores.dim() != 3:
+        raise ValueError(f"scores must be [batch, members, candidates], got {tuple(scores.shape)}")
+    mean, std = scores.mean(1), scores.std(1, correction=0)
+    if config.rule == "argmax":
+        return mean.argmax(-1)
+    if config.rule == "pessimistic":
+        return (mean - config.k * std).argmax(-1)
+    if config.rule == "softmax":
+        probabilities = torch.softmax(mean.double() / config.temperature, -1)
+        return torch.multinomial(probabilities.cpu(), 1, generator=generator).squeeze(-1).to(scores.device)
+    advantage = scores - scores[..., :1]  # over the clean candidate, per member
+    lower = advantage.mean(1) - config.k * advantage.std(1, correction=0)
+    best = lower.argmax(-1)
+    leave = lower.gather(-1, best.unsqueeze(-1)).squeeze(-1) > config.margin
+    return torch.where(leave, best, torch.zeros_like(best))
