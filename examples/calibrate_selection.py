@@ -31,7 +31,7 @@ class Config:
     seed: int = VALIDATION_SEED  # validation episodes: any evaluation seed but the test seed
     test_seed: int = TEST_SEED  # the evaluation seed of the episodes you report: refused here
     grid: str = "all"  # the entries evaluated: margin (the default rule's settings) | all (and the other rules)
-    rule: str = "margin"  # the rule whose settings are calibrated
+    rule: str | None = None  # choose only among this rule's settings (default: among every entry of the grid)
     write: bool = True  # store the chosen setting in the world-model checkpoint
     device: str = "cpu"
     num_candidates: int = 32

@@ -86,7 +86,19 @@ def trusted_rows(table: list[dict], policy: str) -> list[dict]:
             and all(len(row[m]) == len(row["seeds"]) for m, _ in TRUSTED)]
 
 
-def trusted_selection(table: list[dict]) -> dict:
+def validation_rates(root: Path, task: str, policy: str, seeds: list[int]) -> dict:
+    """Each seed's calibration on validation episodes: base and every grid entry's success (%)."""
+    out = {}
+    for seed in seeds:
+        path = root / "calibration" / task / f"{policy}_seed{seed}" / "calibration.json"
+        record = json.loads(path.read_text()) if path.exists() else None
+        if record and record.get("entries"):
+            out[str(seed)] = {"episodes": record["episodes"], "seed": record["seed"], "base": round(100 * record["base_success_rate"], 1),
+                              **{e["name"]: round(100 * e["success_rate"], 1) for e in record["entries"]}}
+    return out
+
+
+def trusted_selection(table: list[dict], root: Path) -> dict:
     """The trusted-selection data: per backbone (``fm`` at the top level, others under their name)
     and task, the mean success (%) of every method, seeds, episodes per seed and the default's
     sign test against the base policy; the default rule (the rule family that calibration chose
@@ -100,7 +112,8 @@ def trusted_selection(table: list[dict]) -> dict:
                                "random": 100 * mean(row["random"]), "seeds": len(row["seeds"]),
                                "episodes": row["episodes"][0] if len(row["episodes"]) == 1 else row["episodes"],
                                "p_default_vs_base": row["p_value"], "only_base": row["base_only"], "only_default": row["dalir_only"],
-                               "rules": dict(zip(map(str, row["seeds"]), row["rules"]))} for row in rows}
+                               "rules": dict(zip(map(str, row["seeds"]), row["rules"])),
+                               "validation": validation_rates(root, row["task"], policy, row["seeds"])} for row in rows}
         families = sorted({rule.split("(")[0] for t in tasks.values() for rule in t["rules"].values()})
         block = {"tasks": {task: {k: round(v, 4 if k.startswith("p_") else 1) if isinstance(v, float) else v for k, v in t.items()}
                            for task, t in tasks.items()},
@@ -141,7 +154,7 @@ def main(argv: list[str]) -> None:
         rows = [row for row in table if row["policy"] == policy and row["scorer_target"] == "completion"]
         if rows:
             plot_success_by_task(rows, root / f"summary_{policy}.png", title=f"DALI-R on a frozen {policy.upper()} policy")
-    trusted = trusted_selection(table)
+    trusted = trusted_selection(table, root)
     if trusted:
         text = trusted_table(trusted)
         print(text)

@@ -146,7 +146,11 @@ def test_calibration_reads_only_validation_episodes_and_stores_its_choice(traine
     monkeypatch.setattr(calibration, "evaluate_checkpoints", fake_evaluate)
     grid = (SelectionConfig("margin", "ensemble", k=1.0, margin=1.0), SelectionConfig("margin", "ensemble", k=1.0, margin=0.02),
             SelectionConfig("margin", "ensemble", k=1.0, margin=0.0), SelectionConfig("argmax", "state"))
-    record = calibration.calibrate(policy_path, path, grid=grid, episodes=10, seed=1)
+    record = calibration.calibrate(policy_path, path, grid=grid, episodes=10, seed=1, write=False)
+    assert record["chosen"] == "argmax(state)"  # the best entry of the grid
+    assert load_world_model(path).selection == SelectionConfig() and load_world_model(path).calibration is None  # write=False
+    seeds.clear()
+    record = calibration.calibrate(policy_path, path, grid=grid, rule="margin", episodes=10, seed=1)
     assert set(seeds) == {1} and len(seeds) == 1 + len(grid)
     # the best margin setting, the first of two equals; argmax(state) scored more but is not of the rule
     assert record["chosen"] == "margin(ensemble, k=1, margin=0.02)"

@@ -58,7 +58,7 @@ class PipelineConfig:
     eval_methods: list[str] = field(default_factory=lambda: ["base", "dalir", "argmax", "random"])
     calibration_episodes: int = 30
     calibration_seed: int = 1
-    calibration_grid: str = "margin"  # margin (the default rule's settings) | all (and the other rules, for comparison)
+    calibration_grid: str = "all"  # all (the margin settings and the other rules) | margin (the margin settings only)
     num_candidates: int = 32
     dropout: float = 0.2
     redo: list[str] = field(default_factory=list)

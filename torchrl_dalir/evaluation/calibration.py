@@ -3,8 +3,8 @@
 Every setting of a rule (the margin, the pessimism ``k``, the temperature) is chosen on
 *validation* episodes, which have their own evaluation seed, and never on the test episodes
 that results report. The base policy and every rule of the grid run on the same validation
-episodes; the winner is the rule with the most successes among those of the calibrated family,
-ties going to the entry listed first. The margin grid lists the most conservative setting first,
+episodes; the winner is the entry with the most successes (among those of ``rule`` if one is
+named), ties going to the entry listed first. The grids list the most conservative setting first,
 ``margin=1``, which always executes the clean candidate (the base policy's own chunk, with
 DALI-R's sampling noise), so another setting must solve more validation episodes than it to be
 chosen. With 30 validation episodes the best of five settings is partly luck: the test episodes
@@ -41,7 +41,7 @@ def calibrate(
     world_model_path: str | Path,
     *,
     grid: tuple[SelectionConfig, ...] = GRIDS["all"],
-    rule: str = "margin",
+    rule: str | None = None,
     episodes: int = 30,
     seed: int = VALIDATION_SEED,
     test_seed: int = TEST_SEED,
@@ -49,7 +49,7 @@ def calibrate(
     **evaluate_kwargs,
 ) -> dict:
     """Evaluates the base policy and every entry of ``grid`` on ``episodes`` validation episodes
-    of evaluation seed ``seed``, picks the best entry whose rule is ``rule`` and, if ``write``,
+    of evaluation seed ``seed``, picks the best entry (of those whose rule is ``rule``, if given) and, if ``write``,
     stores it in the world-model checkpoint (``selection``, with the whole record under
     ``calibration``). Returns that record: per entry its name, settings, success rate, the
     paired comparison with the base policy, and the chosen entry.
@@ -59,7 +59,7 @@ def calibrate(
     """
     if seed == test_seed:
         raise ValueError(f"calibration must not read the test episodes (evaluation seed {test_seed}); use another seed")
-    if not any(entry.rule == rule for entry in grid):
+    if rule is not None and not any(entry.rule == rule for entry in grid):
         raise ValueError(f"no entry of the grid has rule {rule!r}: {[entry.name for entry in grid]}")
     state = load_checkpoint(world_model_path, "world_model")  # fails now, not after the base policy's episodes
     if "ensemble_state" not in state and any(entry.scorer == "ensemble" for entry in grid):
@@ -73,7 +73,7 @@ def calibrate(
         successes = [r["success"] for r in row["records"]]
         entries.append({"name": entry.name, "selection": entry.to_dict(), "success_rate": row["success_rate"],
                         "vs_base": paired_sign_test(base_successes, successes), "seconds": row["seconds"]})
-    family = [e for e in entries if e["selection"]["rule"] == rule]
+    family = [e for e in entries if rule is None or e["selection"]["rule"] == rule]
     chosen = max(family, key=lambda e: e["success_rate"])  # max keeps the first of equals
     record = {"episodes": episodes, "seed": seed, "rule": rule, "base_success_rate": base["success_rate"],
               "entries": entries, "chosen": chosen["name"], "selection": chosen["selection"]}

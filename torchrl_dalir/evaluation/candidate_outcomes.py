@@ -144,6 +144,8 @@ def _try_candidates(actor: RerankingActor, env: PointCloudObservation, history: 
         "imagination_error": float((imagined - real).norm(dim=-1).mean()),
         "real_spread": float((real - real.mean(0)).norm(dim=-1).mean()),
     }
+    if actor.ensemble is not None:  # the scorer ensemble's rating of the same imagined outcomes
+        record["ensemble_score"] = torch.sigmoid(actor.ensemble(imagined)).mean(0).tolist()
     if follow_through:
         record["final_success"] = final_success
     clean_observations, _, ended = outcomes[0]
@@ -180,8 +182,9 @@ def _follow_through_summary(records: list[dict]) -> dict:
     """How often the episode, continued with the base policy, succeeds after the clean candidate,
     DALI-R's pick, an average candidate (a random pick), and the candidate whose real outcome the
     scorer rates best (DALI-R with perfect imagination); and, at decisions where only some
-    candidates go on to succeed, the area under the ROC curve of each score for telling them apart
-    (0.5: no better than chance)."""
+    candidates go on to succeed, the area under the ROC curve of each score (imagined, real, and the
+    scorer ensemble's on the imagined outcome where the world model has one) for telling them
+    apart (0.5: no better than chance)."""
     if not records:
         return {}
 
@@ -206,4 +209,5 @@ def _follow_through_summary(records: list[dict]) -> dict:
         "decisions_split_by_final_success": len(split),
         "imagined_score_auc_there": auc("imagined_score"),
         "real_score_auc_there": auc("real_score"),
+        **({"ensemble_score_auc_there": auc("ensemble_score")} if all("ensemble_score" in r for r in records) else {}),
     }

@@ -47,6 +47,7 @@ def evaluate_checkpoints(
     """
     from torchrl_dalir.training.loop import load_checkpoint
     from torchrl_dalir.training.policy import load_policy
+    from torchrl_dalir.training.world_model import load_world_model
 
     methods = methods if methods is not None else ["base"] + (["dalir"] if world_model_path is not None else [])
     unknown = set(methods) - set(METHODS)
@@ -61,8 +62,13 @@ def evaluate_checkpoints(
     reranking = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
     rules = {"dalir": {"selection": selection} if selection is not None else {}, "argmax": {"selection": SelectionConfig()}, "random": {}}
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}
-    rows = {}
+    rows, by_rule = {}, {}  # DALI-R with the same rule on the same episodes gives the same row: run it once
     for method in methods:
+        if method in ("dalir", "argmax"):
+            rule = (rules[method].get("selection") or load_world_model(world_model_path).selection).name
+            if rule in by_rule:
+                rows[METHODS[method]] = by_rule[rule]
+                continue
         torch.manual_seed(actor_seed)
         start = time.perf_counter()
         if method == "base":
@@ -83,6 +89,8 @@ def evaluate_checkpoints(
             "seconds": round(time.perf_counter() - start, 1),
             "records": result.to_dict()["episodes"],
         }
+        if method in ("dalir", "argmax"):
+            by_rule[rule] = rows[name]
         print(f"[evaluation] {policy.task} {name}: {result.success_rate:.1%} over {episodes} episodes", flush=True)
     return rows
 
