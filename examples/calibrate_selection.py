@@ -37,6 +37,7 @@ class Config:
     num_candidates: int = 32
     dropout: float = 0.2
     actor_seed: int = 0
+    common_noise: bool = False  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
     out: str | None = None  # default: next to the world model
 
 
@@ -46,6 +47,7 @@ def main(argv: list[str]) -> None:
     record = calibrate(
         cfg.policy, cfg.world_model, grid=GRIDS[cfg.grid], rule=cfg.rule, episodes=cfg.episodes, seed=cfg.seed, test_seed=cfg.test_seed, write=cfg.write,
         device=cfg.device, num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed,
+        common_noise=cfg.common_noise,
     )
     print(f"\nvalidation (evaluation seed {cfg.seed}, {cfg.episodes} episodes): base policy {record['base_success_rate']:.1%}")
     for entry in record["entries"]:

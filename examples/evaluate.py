@@ -37,6 +37,7 @@ class Config:
     actor_seed: int = 0
     methods: list[str] | None = None  # among base, dalir, random (DALI-R's candidates chosen at random)
     selection: SelectionConfig | None = None  # DALI-R's rule (selection.rule=argmax ...); default: the checkpoint's
+    common_noise: bool = False  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
     out: str = "outputs/evaluation"
 
 
@@ -45,7 +46,7 @@ def main(argv: list[str]) -> None:
     rows = evaluate_checkpoints(
         cfg.policy, cfg.world_model, episodes=cfg.episodes, seed=cfg.seed, device=cfg.device,
         num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed, methods=cfg.methods,
-        selection=cfg.selection,
+        selection=cfg.selection, common_noise=cfg.common_noise,
     )
     print(f"\n{'method':16s} {'success':>8s} {'episodes':>9s} {'seconds':>8s}")
     for name, row in rows.items():

@@ -32,6 +32,7 @@ def evaluate_checkpoints(
     actor_seed: int = 0,
     methods: list[str] | None = None,
     selection: SelectionConfig | None = None,
+    common_noise: bool = False,
     progress: bool = True,
 ) -> dict[str, dict]:
     """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` is given,
@@ -41,8 +42,9 @@ def evaluate_checkpoints(
     the rule stored in the world-model checkpoint), ``"argmax"`` (DALI-R with the paper's arg-max
     of the state scorer, whatever the checkpoint names) and ``"random"``
     (:class:`RandomCandidateActor`, DALI-R's candidates chosen at random); by default the base
-    policy, and DALI-R if there is a world model. Returns ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with
-    ``success_rate``, ``episodes``, ``seconds`` and per-episode ``records``; the reranking
+    policy, and DALI-R if there is a world model. ``common_noise`` gives the reranking methods'
+    clean candidate the base policy's own sampling noise (see :class:`RerankingActor`). Returns
+    ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with ``success_rate``, ``episodes``, ``seconds`` and per-episode ``records``; the reranking
     methods' records describe their choices in ``details`` (:func:`decision_summary`).
     """
     from torchrl_dalir.training.loop import load_checkpoint
@@ -69,18 +71,18 @@ def evaluate_checkpoints(
             if rule in by_rule:
                 rows[METHODS[method]] = by_rule[rule]
                 continue
-        torch.manual_seed(actor_seed)
         start = time.perf_counter()
         if method == "base":
             actor, describe = receding_horizon(policy, *steps), None
         else:
             chooser = reranking[method].on_policy(
                 policy, world_model_path, device, num_candidates=num_candidates, candidates=PointDropout(dropout), seed=actor_seed,
-                **rules[method],
+                common_noise=common_noise, **rules[method],
             )
             actor = receding_horizon(chooser, *steps, decision_keys=[CANDIDATE_SCORES, CHOSEN_CANDIDATE])
             describe = partial(decision_summary, action_steps=policy.config.action_steps)
         name = METHODS[method]
+        torch.manual_seed(actor_seed)  # after building the actor, whose modules' initialisation draws from it
         result = evaluate(actor, policy.task, episodes, seed, progress=progress, describe=describe, **env_kwargs)
         rows[name] = {
             **({"selection": chooser.selection.name} if method in ("dalir", "argmax") else {}),

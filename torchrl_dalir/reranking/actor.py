@@ -43,6 +43,11 @@ class RerankingActor(TensorDictModuleBase):
         selection: the selection rule (default: the paper's arg-max of the state scorer).
             :meth:`from_checkpoints` uses the rule stored in the world-model checkpoint by
             ``examples/calibrate_selection.py`` unless one is passed.
+        common_noise: candidate 0 is sampled exactly as the base policy samples (its own network
+            call, its noise from torch's global generator) instead of with ``seed``'s noise in the
+            candidates' batch (common random numbers): a rule that keeps the clean candidate then
+            replays the base policy's episodes, so a paired comparison sees only the decisions
+            where the rule switched. Costs one more batch-1 policy call per decision.
     """
 
     in_keys = [keys.POINT_CLOUD, keys.AGENT_POS]
@@ -60,6 +65,7 @@ class RerankingActor(TensorDictModuleBase):
         seed: int = 0,
         ensemble: ScorerEnsemble | None = None,
         selection: SelectionConfig | None = None,
+        common_noise: bool = False,
     ):
         super().__init__()
         if num_candidates < 1:
@@ -80,7 +86,7 @@ class RerankingActor(TensorDictModuleBase):
                 module.eval().requires_grad_(False)
         self.num_candidates = num_candidates
         self.candidates = candidates if candidates is not None else PointDropout(0.2)
-        self.seed = seed
+        self.seed, self.common_noise = seed, common_noise
         self.generator = torch.Generator().manual_seed(seed)
 
     @classmethod
@@ -131,7 +137,12 @@ class RerankingActor(TensorDictModuleBase):
     def sample_candidates(self, cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
         """Candidate chunks ``[B, K, H, A]``; candidate 0 comes from the clean observation."""
         cond = self.candidates.conditions(self.policy, cloud, agent_pos, self.num_candidates, self.generator)
-        return self.policy.sample(cond, self.generator)
+        if not self.common_noise:
+            return self.policy.sample(cond, self.generator)
+        shape = (cond.shape[0], self.num_candidates, self.policy.config.horizon, self.policy.action_dim)
+        noise = torch.randn(shape, generator=self.generator).to(cond.device)  # as without common noise
+        clean = self.policy.sample(self.policy.encode(cloud, agent_pos))  # the base policy's own call, bit for bit
+        return torch.cat([clean.unsqueeze(1), self.policy.sample(cond[:, 1:], noise=noise[:, 1:])], dim=1)
 
     @torch.no_grad()
     def propose(self, cloud: torch.Tensor, agent_pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
