@@ -49,7 +49,6 @@ def evaluate_checkpoints(
     """
     from torchrl_dalir.training.loop import load_checkpoint
     from torchrl_dalir.training.policy import load_policy
-    from torchrl_dalir.training.world_model import load_world_model
 
     methods = methods if methods is not None else ["base"] + (["dalir"] if world_model_path is not None else [])
     unknown = set(methods) - set(METHODS)
@@ -58,8 +57,8 @@ def evaluate_checkpoints(
     if world_model_path is None and set(methods) - {"base"}:
         raise ValueError(f"methods {methods} rerank candidates: they need a world_model_path")
     policy = load_policy(policy_path, device)
-    if world_model_path is not None:
-        load_checkpoint(world_model_path, "world_model")  # fails now, not after the base policy's episodes
+    if world_model_path is not None:  # fails now, not after the base policy's episodes
+        stored = SelectionConfig.stored_in(load_checkpoint(world_model_path, "world_model"))
     steps = (policy.config.obs_steps, policy.config.action_steps)
     reranking = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
     rules = {"dalir": {"selection": selection} if selection is not None else {}, "argmax": {"selection": SelectionConfig()}, "random": {}}
@@ -67,7 +66,7 @@ def evaluate_checkpoints(
     rows, by_rule = {}, {}  # DALI-R with the same rule on the same episodes gives the same row: run it once
     for method in methods:
         if method in ("dalir", "argmax"):
-            rule = (rules[method].get("selection") or load_world_model(world_model_path).selection).name
+            rule = rules[method].get("selection", stored).name
             if rule in by_rule:
                 rows[METHODS[method]] = by_rule[rule]
                 continue

@@ -64,6 +64,11 @@ class SelectionConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def stored_in(cls, checkpoint: dict) -> SelectionConfig:
+        """The rule a loaded world-model checkpoint names (the paper's arg-max if it names none)."""
+        return cls(**checkpoint.get("selection", {}))
+
 
 def select(scores: torch.Tensor, config: SelectionConfig, generator: torch.Generator | None = None) -> torch.Tensor:
     """The index ``[B]`` of the candidate to execute, from member scores ``[B, E, K]``."""
