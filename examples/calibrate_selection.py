@@ -17,8 +17,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from torchrl_dalir.config import config_dict, parse_config
-from torchrl_dalir.config import check_choice
+from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.evaluation.calibration import GRIDS, TEST_SEED, VALIDATION_SEED, calibrate
 from torchrl_dalir.utils import atomic_write_text
 

@@ -21,20 +21,30 @@ from pathlib import Path
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.data import Source, TrajectoryDataset, collect
 from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, store_selection
-from torchrl_dalir.evaluation.compare import ARGMAX, BASE, DALIR, evaluate_checkpoints, paired_sign_test, pool_decision_summaries
+from torchrl_dalir.evaluation.compare import (
+    ARGMAX,
+    BASE,
+    DALIR,
+    evaluate_checkpoints,
+    paired_sign_test,
+    pool_decision_summaries,
+)
 from torchrl_dalir.evaluation.diagnostics import imagination_curves
 from torchrl_dalir.evaluation.plots import plot_imagination_diagnostics
-from torchrl_dalir.pipeline import PRESETS, PipelineConfig
+from torchrl_dalir.pipeline import PRESETS, STAGES, PipelineConfig
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training import load_policy, load_world_model, train_policy, train_world_model
 from torchrl_dalir.training.loop import training_finished
-from torchrl_dalir.training.policy import policy_actor
+from torchrl_dalir.training.policy import exploration_actor, policy_actor
 from torchrl_dalir.utils import atomic_write_text
 
 
 def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exists) -> None:
     """Runs ``run`` unless ``finished(artifact)``. A stage in ``cfg.redo`` starts from scratch:
-    its directory (the artifact's parent) is first moved aside to ``<dir>.replaced-<time>``."""
+    its directory (the artifact's parent) is first moved aside to ``<dir>.replaced-<time>``.
+    Stages after ``cfg.until`` are not run."""
+    if STAGES.index(name) > STAGES.index(cfg.until):
+        return
     if name in cfg.redo and artifact.parent.exists():
         aside = artifact.parent.with_name(f"{artifact.parent.name}.replaced-{time.strftime('%Y%m%d-%H%M%S')}")
         artifact.parent.rename(aside)
@@ -69,6 +79,13 @@ def main(argv: list[str]) -> None:
         cfg.task, data.mixed_dir(), [*data.mixed_sources(), base_rollouts], seed=2 * cfg.seed + 1,
         noise_correlation=data.noise_correlation, **common))
 
+    # 3b. Optional exploration data: the base policy acting on point-dropout views.
+    if cfg.exploration_rollouts > 0:
+        explore = Source("exploration", cfg.exploration_rollouts, policy=partial(exploration_actor, str(policy_path), cfg.dropout, cfg.seed),
+                         expert=False, history=2)
+        stage("exploration", cfg, data.task_dir() / cfg.exploration_name() / "rows", lambda: collect(
+            cfg.task, data.task_dir() / cfg.exploration_name(), [explore], seed=2 * cfg.seed + 2, **common))
+
     # 4. Latent encoder, task-completion scorer and latent world model, the policy frozen.
     stage("world_model", cfg, world_model_path, lambda: train_world_model(cfg.world_model))
 
@@ -83,7 +100,8 @@ def main(argv: list[str]) -> None:
     # (done only if DALI-R was evaluated with the rule that the world model now names)
     stage("evaluation", cfg, results / "results.json", lambda: evaluate_and_report(cfg, policy_path, world_model_path),
           finished=lambda path: path.exists() and evaluated_rule(path) in (None, load_world_model(world_model_path).selection.name))
-    print((results / "results.md").read_text())
+    if cfg.until == STAGES[-1]:
+        print((results / "results.md").read_text())
 
 
 def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_path: Path, out: Path) -> None:

@@ -1,8 +1,8 @@
 """Common random numbers: DALI-R keeping its clean candidate replays the base policy."""
 
-import torch
 from torchrl_dalir.evaluation.compare import evaluate_checkpoints
 from torchrl_dalir.reranking.selection import SelectionConfig
+
 
 def test_keeping_the_clean_candidate_with_common_noise_replays_the_base_policy(trained_world_model):
     _, wm_path, policy_path = trained_world_model

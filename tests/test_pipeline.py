@@ -93,3 +93,19 @@ def test_sweep_refuses_unknown_tasks_before_running_anything(tmp_path, monkeypat
     with pytest.raises(KeyError, match="unknown task 'shelf_place'"):
         run_example("sweep.py", ["tasks=[shelf_place]", f"out={tmp_path}"], monkeypatch)
     assert not (tmp_path / "logs").exists()
+
+
+def test_exploration_rollouts_join_the_world_models_data(tmp_path, monkeypatch):
+    from torchrl_dalir.data import TrajectoryDataset
+    from torchrl_dalir.training import load_world_model
+
+    quiet = ["collection.progress=false", "policy_training.progress=false", "world_model.progress=false"]
+    run_example("train_dp3_wm.py", ["preset=smoke", "task=reach", f"out={tmp_path}", "exploration_rollouts=2", "until=world_model", *quiet],
+                monkeypatch)
+    explore = TrajectoryDataset.load(tmp_path / "data" / "reach" / "explore_fm_seed0")
+    assert explore.num_trajectories == 2 and explore.meta.sources[0]["name"] == "exploration"
+    mixed = TrajectoryDataset.load(tmp_path / "data" / "reach" / "mixed_fm_seed0")
+    parts = load_world_model(tmp_path / "world_models" / "fm" / "reach" / "seed0+explore_fm_seed0" / "world_model.pt")
+    held = len(parts.held_out_trajectories)
+    assert held == round(0.4 * (mixed.num_trajectories + 2))  # the split runs over both datasets' trajectories
+    assert not (tmp_path / "calibration").exists()  # stopped after the world model

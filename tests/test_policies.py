@@ -50,6 +50,19 @@ def test_masked_pooling_equals_encoding_the_kept_points():
         torch.testing.assert_close(shared[i], encoder(cloud[i][keep[i]]))
 
 
+@pytest.mark.parametrize("p", [0.2, 0.9])  # 0.9: most channels need the full fallback
+def test_top_k_masked_max_is_bit_identical_to_the_full_masked_max(p):
+    from torchrl_dalir.modules.encoders import masked_max
+
+    g = torch.Generator().manual_seed(0)
+    features = torch.randn(2, 1, 2, 300, 64, generator=g).round(decimals=1)  # ties between points too
+    keep = torch.rand(2, 32, 2, 300, generator=g) >= p
+    keep[..., 0] |= ~keep.any(-1)
+    expected = features.expand(2, 32, 2, 300, 64).masked_fill(~keep.unsqueeze(-1), float("-inf")).max(-2).values
+    assert torch.equal(masked_max(features, keep), expected)
+    assert torch.equal(masked_max(features, keep, top=1), expected)
+
+
 @pytest.mark.parametrize("kind", ["dp", "fm"])
 def test_policy_shapes_and_reproducible_sampling(kind):
     policy = _policy(kind)

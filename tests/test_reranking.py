@@ -237,3 +237,21 @@ def test_follow_through_summary_exact_values():
     assert summary["imagined_score_auc_there"] == 0.75
     assert summary["real_score_auc_there"] == 1.0  # (0.3, 0.4) against (0.2, 0.1)
     assert "final_success_pick" not in summarize_candidate_outcomes([record])
+
+
+def test_dropout_policy_samples_a_dropout_candidate_and_leaves_the_observation_clean():
+    from torchrl_dalir.reranking.candidates import DropoutPolicy
+
+    policy, *_ = _parts()
+    obs = _observation(batch=2)
+    clean = obs[keys.POINT_CLOUD].clone()
+    torch.manual_seed(3)
+    chunk = DropoutPolicy(policy, 0.3, seed=7)(obs.clone())[keys.ACTION_CHUNK]
+    keep = PointDropout(0.3, seed=7).keep_masks((2, 2, 40))
+    torch.manual_seed(3)
+    expected = policy.sample(policy.encode(clean, obs[keys.AGENT_POS], keep))
+    assert torch.equal(chunk, expected)
+    torch.manual_seed(3)
+    assert not torch.equal(chunk, policy.sample(policy.encode(clean, obs[keys.AGENT_POS])))  # the mask mattered
+    out = DropoutPolicy(policy, 0.3)(obs)
+    assert torch.equal(out[keys.POINT_CLOUD], clean)

@@ -1,14 +1,14 @@
 import dataclasses
+from pathlib import Path
 
 import pytest
 import torch
 from tensordict import TensorDict
 
 from torchrl_dalir import RerankingActor, keys
-from torchrl_dalir.config import parse_config
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.objectives import LatentDynamicsLoss, TaskCompletionLoss
-from torchrl_dalir.training import WORLD_MODEL_PRESETS, WorldModelTrainingConfig, load_world_model, train_world_model
+from torchrl_dalir.training import load_world_model, train_world_model
 
 
 def _train(loss_module, params, steps=80, lr=3e-3):
@@ -130,3 +130,38 @@ def test_dense_reward_oracle_scorer(trained_world_model):
     assert not torch.equal(state["scorer_state"]["net.0.weight"], torch.load(sparse_path, weights_only=False)["scorer_state"]["net.0.weight"])
     with pytest.raises(ValueError, match="scorer_target"):
         dataclasses.replace(cfg, scorer_target="reward")
+
+
+def test_frozen_encoder_keeps_the_policys_encoder_and_trains_the_scorer_on_its_latents(trained_world_model):
+    from torchrl_dalir.modules import LatentEncoder
+    from torchrl_dalir.training import load_policy
+
+    cfg, finetuned_path, policy_path = trained_world_model
+    frozen = dataclasses.replace(cfg, encoder="frozen", frozen_scorer_steps=40)
+    path = train_world_model(frozen)
+    assert path != finetuned_path and path.parent.name == "seed0_frozen"
+    parts = load_world_model(path)
+    policy_encoder = LatentEncoder.from_policy(load_policy(policy_path))
+    for name, value in policy_encoder.state_dict().items():
+        assert torch.equal(parts.encoder.state_dict()[name], value), name
+    assert not torch.equal(parts.encoder.state_dict()["point_encoder.point_mlp.0.weight"],
+                           load_world_model(finetuned_path).encoder.state_dict()["point_encoder.point_mlp.0.weight"])
+    assert torch.load(path, weights_only=False)["encoder_mode"] == "frozen"
+    with pytest.raises(ValueError, match="encoder"):
+        dataclasses.replace(cfg, encoder="thawed")
+
+
+def test_extra_data_joins_the_mixed_data(trained_world_model, collected):
+    from torchrl_dalir.training.world_model import training_data
+
+    cfg, _, _ = trained_world_model
+    (Path(cfg.data) / "reach" / "more").symlink_to(collected.root)
+    joined = training_data(dataclasses.replace(cfg, extra_data=["more"]))
+    assert joined.num_trajectories == 2 * collected.num_trajectories
+    assert len(joined.meta.sources) == 2 * len(collected.meta.sources)
+    for i in range(collected.num_trajectories):
+        second = joined.trajectory(collected.num_trajectories + i)
+        assert torch.equal(second[keys.POINT_CLOUD], collected.trajectory(i)[keys.POINT_CLOUD])
+        assert (second[keys.TRAJECTORY_ID] == collected.num_trajectories + i).all()
+        assert (second[keys.SOURCE] == collected.trajectory(i)[keys.SOURCE] + len(collected.meta.sources)).all()
+    assert dataclasses.replace(cfg, extra_data=["more"]).run_dir().name == "seed0+more"

@@ -32,4 +32,5 @@ QUALITY_TAGS = ("expert", "imperfect_success", "failed")
 OBS_MASK = "obs_is_pad"  # [..., To] bool, observation-history steps padded before the episode start
 ACTION_MASK = "action_is_pad"  # [..., H] bool, chunk steps padded past the episode's last action
 FUTURE = "future"  # sub-tensordict: the observation k steps ahead (the world model's target)
+LATENT = "latent"  # [..., L] s_t of a frozen latent encoder, precomputed once
 FUTURE_MASK = "future_is_pad"  # [...] bool, the episode ended before t + k: the final observation stands in

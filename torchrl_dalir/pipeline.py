@@ -22,7 +22,7 @@ from torchrl_dalir.training.policy import PolicyTrainingConfig
 from torchrl_dalir.training.world_model import PRESETS as WORLD_MODEL_PRESETS
 from torchrl_dalir.training.world_model import WorldModelTrainingConfig
 
-STAGES = ("demos", "policy", "mixed", "world_model", "calibration", "evaluation")
+STAGES = ("demos", "policy", "mixed", "exploration", "world_model", "calibration", "evaluation")
 
 
 @dataclass
@@ -33,6 +33,9 @@ class PipelineConfig:
         live in ``<out>/data/<task>/demos``; ``seed`` varies the policy, mixed data and world model).
     policy: the base policy's backbone (``fm`` or ``dp``).
     base_policy_rollouts: trajectories of the trained base policy added to the mixed data.
+    exploration_rollouts: trajectories of the base policy acting on point-dropout views (one of
+        DALI-R's candidates at random per decision), collected as ``explore_<policy>_seed<seed>``
+        and added to the world model's data (0: none, the paper's data).
     eval_episodes, eval_seed: the test episodes, shared by every method (``eval_methods``: the
         base policy, DALI-R with the calibrated rule, with the paper's arg-max, and the
         random-candidate control; see :func:`~torchrl_dalir.evaluation.compare.evaluate_checkpoints`).
@@ -43,6 +46,7 @@ class PipelineConfig:
     redo: stages to run again from scratch even if their artifact exists
         (``redo=[world_model]``); later stages are redone too, and each previous run's
         directory is kept aside.
+    until: the last stage to run (``until=mixed`` makes the policy and its data, then stops).
     """
 
     task: str = "disassemble"
@@ -53,6 +57,7 @@ class PipelineConfig:
     out: str = "outputs/pipeline"
     policy: str = "fm"
     base_policy_rollouts: int = 100
+    exploration_rollouts: int = 0
     eval_episodes: int = 50
     eval_seed: int = 0
     eval_methods: list[str] = field(default_factory=lambda: ["base", "dalir", "argmax", "random"])
@@ -62,6 +67,7 @@ class PipelineConfig:
     num_candidates: int = 32
     dropout: float = 0.2
     redo: list[str] = field(default_factory=list)
+    until: str = "evaluation"
     collection: CollectionConfig = field(default_factory=CollectionConfig)
     policy_training: PolicyTrainingConfig = field(default_factory=PolicyTrainingConfig)
     world_model: WorldModelTrainingConfig = field(default_factory=WorldModelTrainingConfig)
@@ -74,6 +80,7 @@ class PipelineConfig:
         check_choice("calibration_grid", self.calibration_grid, GRIDS)
         if self.calibration_seed == self.eval_seed:
             raise ValueError(f"calibration_seed must differ from eval_seed ({self.eval_seed}): the rule is chosen on validation, not test, episodes")
+        check_choice("until", self.until, STAGES)
         unknown = set(self.redo) - set(STAGES)
         if unknown:
             raise ValueError(f"unknown stages {sorted(unknown)}; stages are {STAGES}")
@@ -91,10 +98,14 @@ class PipelineConfig:
             stage.seed = self.seed
         self.policy_training.device = self.world_model.device = self.device
         self.world_model.policy_checkpoint = str(self.policy_training.run_dir() / "checkpoint.pt")
+        if self.exploration_rollouts > 0 and self.exploration_name() not in self.world_model.extra_data:
+            self.world_model.extra_data = [*self.world_model.extra_data, self.exploration_name()]
+
+    def exploration_name(self) -> str:
+        return f"explore_{self.policy}_seed{self.seed}"
 
     def run_name(self) -> str:
-        oracle = "" if self.world_model.scorer_target == "completion" else f"_{self.world_model.scorer_target}"
-        return f"{self.policy}_seed{self.seed}{oracle}"
+        return f"{self.policy}_seed{self.seed}{self.world_model.variant()}"
 
     def calibration_dir(self) -> Path:
         return Path(self.out) / "calibration" / self.task / self.run_name()

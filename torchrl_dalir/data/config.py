@@ -39,11 +39,14 @@ class CollectionConfig:
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("stage", self.stage, ("demos", "mixed", "all"))
 
+    def task_dir(self) -> Path:
+        return Path(self.out) / self.task
+
     def demos_dir(self) -> Path:
-        return Path(self.out) / self.task / "demos"
+        return self.task_dir() / "demos"
 
     def mixed_dir(self) -> Path:
-        return Path(self.out) / self.task / self.mixed_name
+        return self.task_dir() / self.mixed_name
 
     def mixed_sources(self) -> list[Source]:
         counts = [self.num_mixed // len(self.noise_scales)] * len(self.noise_scales)

@@ -13,6 +13,7 @@ its last finished chunk and never one that loads as complete.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from dataclasses import asdict, dataclass, field
@@ -161,6 +162,26 @@ class TrajectoryDataset:
         if keys.POINT_CLOUD in rows.keys() and rows[keys.POINT_CLOUD].shape[-2:] != (meta.num_points, 3):
             raise ValueError(f"{root}: point clouds of shape {tuple(rows[keys.POINT_CLOUD].shape[-2:])} contradict meta.json")
         return cls(root, meta, rows)
+
+    @classmethod
+    def concat(cls, datasets: list[TrajectoryDataset]) -> TrajectoryDataset:
+        """One in-memory dataset holding every trajectory of ``datasets`` (same task and cloud
+        size), in order, renumbered; its meta lists every source. ``root`` is the first one's."""
+        first = datasets[0]
+        for other in datasets[1:]:
+            if (other.meta.task, other.meta.num_points, other.meta.gamma) != (first.meta.task, first.meta.num_points, first.meta.gamma):
+                raise ValueError(f"cannot join {other.root} ({other.meta.task}, {other.meta.num_points} points, gamma {other.meta.gamma}) "
+                                 f"to {first.root} ({first.meta.task}, {first.meta.num_points} points, gamma {first.meta.gamma})")
+        common = set.intersection(*(set(d.rows.keys(include_nested=True, leaves_only=True)) for d in datasets))
+        rows = torch.cat([d.rows.select(*common).to_tensordict() for d in datasets])
+        sources, offset = [], 0
+        for d in datasets:  # source indices continue across datasets
+            rows[keys.SOURCE][offset : offset + len(d.rows)] += len(sources)
+            sources += d.meta.sources
+            offset += len(d.rows)
+        rows[keys.TRAJECTORY_ID] = torch.cumsum(rows[keys.STEP] == 0, 0) - 1
+        meta = dataclasses.replace(first.meta, sources=sources, shards=[s for d in datasets for s in d.meta.shards])
+        return cls(first.root, meta, rows)
 
     @property
     def task(self) -> str:

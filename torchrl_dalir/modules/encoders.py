@@ -20,6 +20,31 @@ def _mlp(sizes: list[int], layer_norm: bool) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def masked_max(features: torch.Tensor, keep: torch.Tensor, top: int = 8) -> torch.Tensor:
+    """``max`` over the points where ``keep`` is set: ``features`` ``[..., N, C]`` and ``keep``
+    ``[..., N]`` broadcast over the leading dimensions; returns ``[..., C]``.
+
+    Bit-identical to ``features.masked_fill(~keep[..., None], -inf).max(-2)`` without
+    materialising the broadcast features: per channel, the largest value over the kept points is
+    the first kept one among the channel's ``top`` largest values (found once for all masks);
+    only channels with none of those kept (rare under light dropout) take the full masked max.
+    """
+    points, channels = features.shape[-2:]
+    batch = torch.broadcast_shapes(features.shape[:-2], keep.shape[:-1])
+    top = min(top, points)
+    values, index = features.topk(top, dim=-2)  # [..., top, C], largest first
+    index = index.expand(*batch, top, channels)
+    kept = torch.gather(keep.unsqueeze(-1).expand(*batch, points, channels), -2, index)
+    first = kept.to(torch.uint8).argmax(-2, keepdim=True)  # the first kept one (argmax returns the first maximum)
+    out = torch.gather(values.expand(*batch, top, channels), -2, first).squeeze(-2)
+    missing = ~kept.any(-2)  # [..., C]: none of the top values is kept
+    if missing.any():
+        rows = missing.any(-1)
+        masked = features.expand(*batch, points, channels)[rows].masked_fill(~keep.expand(*batch, points)[rows].unsqueeze(-1), float("-inf"))
+        out[rows] = torch.where(missing[rows], masked.max(-2).values, out[rows])
+    return out
+
+
 class PointCloudEncoder(nn.Module):
     """Per-point MLP (Linear, LayerNorm, ReLU per layer), max over points, projection.
 
@@ -41,10 +66,11 @@ class PointCloudEncoder(nn.Module):
         return self.point_mlp(cloud)
 
     def pool(self, features: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
-        """Max over points, only over the points where ``keep`` (``[..., N]`` bool) is set, then projects."""
-        if keep is not None:
-            features = features.masked_fill(~keep.unsqueeze(-1), float("-inf"))
-        return self.projection(features.max(dim=-2).values)
+        """Max over points, only over the points where ``keep`` (``[..., N]`` bool) is set, then
+        projects. ``features`` ``[..., N, C]`` broadcast against ``keep``: one feature pass can
+        serve many masks (``features`` ``[B, 1, To, N, C]``, ``keep`` ``[B, K, To, N]``)."""
+        pooled = features.max(dim=-2).values if keep is None else masked_max(features, keep)
+        return self.projection(pooled)
 
     def forward(self, cloud: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
         return self.pool(self.point_features(cloud), keep)

@@ -9,8 +9,8 @@ from torchrl.objectives import LossModule
 from torchrl_dalir import keys
 from torchrl_dalir.modules.world_model import LatentWorldModel
 
-LATENT = "latent"  # s_t, precomputed by the frozen latent encoder
-FUTURE_LATENT = ("future", "latent")  # s_{t+k}
+LATENT = keys.LATENT  # s_t, precomputed by the frozen latent encoder
+FUTURE_LATENT = (keys.FUTURE, keys.LATENT)  # s_{t+k}
 
 
 class LatentDynamicsLoss(LossModule):

@@ -15,10 +15,11 @@ class TaskCompletionLoss(LossModule):
 
     By default the target is ``completion_target`` = ``gamma^(T-t) * y_T`` from sparse terminal
     labels; ``target_key`` names another one (the dense-reward oracle of the ablation). The
-    latent encoder is fine-tuned through this loss.
+    latent encoder is fine-tuned through this loss; with ``encoder=None`` the scorer reads
+    precomputed latents from ``latent`` (a frozen encoder: many epochs cost little).
 
     Args:
-        encoder: the latent encoder (trainable).
+        encoder: the latent encoder (trainable), or ``None`` to read ``latent``.
         scorer: the scorer.
         target_key: the entry holding targets in [0, 1].
 
@@ -33,12 +34,15 @@ class TaskCompletionLoss(LossModule):
         torch.Size([])
     """
 
-    def __init__(self, encoder: LatentEncoder, scorer: TaskCompletionScorer, target_key: str = keys.COMPLETION_TARGET):
+    def __init__(self, encoder: LatentEncoder | None, scorer: TaskCompletionScorer, target_key: str = keys.COMPLETION_TARGET):
         super().__init__()
         self.encoder, self.scorer, self.target_key = encoder, scorer, target_key
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
-        latent = self.encoder(tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS))
+        if self.encoder is None:
+            latent = tensordict.get(keys.LATENT)
+        else:
+            latent = self.encoder(tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS))
         logits = self.scorer(latent)
         target = tensordict.get(self.target_key).to(logits.dtype)
         loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, target)

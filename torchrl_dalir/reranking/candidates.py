@@ -58,11 +58,10 @@ class PointDropout(TensorDictModuleBase):
 
     def conditions(self, policy, cloud, agent_pos, num_candidates: int, generator: torch.Generator) -> torch.Tensor:
         """Conditions ``[B, K, C]`` for clouds ``[B, To, N, 3]``: one feature pass, ``K`` poolings."""
-        features = policy.point_features(cloud).unsqueeze(1)  # [B, 1, To, N, C]
+        features = policy.point_features(cloud).unsqueeze(1)  # [B, 1, To, N, C], shared by the K masks
         keep = self.keep_masks((cloud.shape[0], num_candidates, *cloud.shape[1:3]), generator).to(cloud.device)
         keep[:, 0] = True  # candidate 0 sees the clean observation
-        expanded = features.expand(-1, num_candidates, -1, -1, -1)
-        return policy.condition(expanded, agent_pos.unsqueeze(1).expand(-1, num_candidates, -1, -1), keep)
+        return policy.condition(features, agent_pos.unsqueeze(1).expand(-1, num_candidates, -1, -1), keep)
 
 
 class GaussianObservationNoise:
@@ -85,3 +84,28 @@ class GaussianObservationNoise:
         noisy = cloud.unsqueeze(1) + noise
         states = agent_pos.unsqueeze(1).expand(-1, num_candidates, -1, -1)
         return policy.encode(noisy.flatten(0, 1), states.flatten(0, 1)).reshape(batch, num_candidates, -1)
+
+
+class DropoutPolicy(TensorDictModuleBase):
+    """A policy that acts on a point-dropout view of its observation: each decision is one of
+    DALI-R's perturbed candidates, taken at random. Its rollouts are exploration data that covers
+    the candidates a reranker chooses among (the stored observations stay clean).
+
+    Args:
+        policy: the frozen base policy.
+        p: the point-dropout probability (DALI-R's).
+        seed: seeds the dropout masks.
+    """
+
+    in_keys = [keys.POINT_CLOUD, keys.AGENT_POS]
+    out_keys = [keys.ACTION_CHUNK]
+
+    def __init__(self, policy, p: float = 0.2, seed: int = 0):
+        super().__init__()
+        self.policy, self.dropout = policy, PointDropout(p, seed)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        cloud, agent_pos = tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS)
+        keep = self.dropout.keep_masks(cloud.shape[:-1]).to(cloud.device)
+        cond = self.policy.encode(cloud, agent_pos, keep)
+        return tensordict.set(keys.ACTION_CHUNK, self.policy.sample(cond))

@@ -158,3 +158,14 @@ def policy_actor(path: str | Path, device: str = "cpu"):
 
     policy = load_policy(path, device)
     return receding_horizon(policy, policy.config.obs_steps, policy.config.action_steps)
+
+
+def exploration_actor(path: str | Path, dropout: float = 0.2, seed: int = 0, device: str = "cpu"):
+    """Like :func:`policy_actor`, but every decision acts on a point-dropout view of the
+    observation (:class:`~torchrl_dalir.reranking.candidates.DropoutPolicy`): rollouts of the
+    candidates DALI-R chooses among, for the world model's and scorer's data."""
+    from torchrl_dalir.modules.receding_horizon import receding_horizon
+    from torchrl_dalir.reranking.candidates import DropoutPolicy
+
+    policy = load_policy(path, device)
+    return receding_horizon(DropoutPolicy(policy, dropout, seed), policy.config.obs_steps, policy.config.action_steps)

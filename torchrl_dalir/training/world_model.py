@@ -3,7 +3,10 @@
 Three stages, each resumable:
 
 1. **Scorer**: the latent encoder (a copy of the policy's encoders) and the task-completion
-   scorer are trained together with binary cross-entropy on the discounted Monte-Carlo targets.
+   scorer are trained together with binary cross-entropy on the discounted Monte-Carlo targets
+   (the paper). With ``encoder=frozen`` the copy keeps the policy's weights, every row's latent
+   is computed once and the scorer alone learns from them, for the paper's full number of
+   epochs at a fraction of the cost.
 2. **World model**: the encoder is frozen, every row's latent is computed once, and the world
    model learns ``s_{t+k} - s_t`` from ``(s_t, a_{t:t+k})``. Frozen targets cannot collapse; the
    held-out MSE is reported next to the "no change" predictor ``s_hat = s_t``.
@@ -33,7 +36,14 @@ from torchrl_dalir.config import check_choice, config_dict
 from torchrl_dalir.data import TrajectoryDataset, dense_reward_targets
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.envs.tasks import get_task
-from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, ScorerEnsemble, TaskCompletionScorer, make_policy
+from torchrl_dalir.modules import (
+    LatentEncoder,
+    LatentWorldModel,
+    PolicyConfig,
+    ScorerEnsemble,
+    TaskCompletionScorer,
+    make_policy,
+)
 from torchrl_dalir.objectives import ImaginedCompletionLoss, LatentDynamicsLoss, TaskCompletionLoss
 from torchrl_dalir.objectives.imagined_completion import IMAGINED_LATENT
 from torchrl_dalir.objectives.latent_dynamics import LATENT
@@ -46,6 +56,7 @@ from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
 # The scorer's training target: the sparse terminal labels' Monte-Carlo targets (the method), or
 # the simulator's dense reward-to-go (an oracle, for the ablation).
 SCORER_TARGETS = {"completion": keys.COMPLETION_TARGET, "dense_reward": keys.DENSE_REWARD_TARGET}
+ENCODER_MODES = ("finetune", "frozen")
 
 
 @dataclass
@@ -58,6 +69,8 @@ class WorldModelTrainingConfig:
     device: str = "cpu"
     data: str = "outputs/data"  # the mixed data is read from <data>/<task>/<mixed_name>
     mixed_name: str = "mixed"
+    extra_data: list[str] = field(default_factory=list)  # more datasets of <data>/<task>/ added to the mixed data
+    encoder: str = "finetune"  # finetune (the paper: trained with the scorer) | frozen (the policy's encoder, latents computed once)
     policy_checkpoint: str = "outputs/policies/disassemble/fm_seed0/checkpoint.pt"
     out: str = "outputs/world_models"  # the run writes <out>/<task>/seed<seed>/
     held_out_fraction: float = 0.1
@@ -67,6 +80,7 @@ class WorldModelTrainingConfig:
     scorer_batch_size: int = 128
     scorer_epochs: int = 30
     scorer_steps: int = 0  # 0: derive from scorer_epochs
+    frozen_scorer_steps: int = 0  # with encoder=frozen (0: derive from scorer_epochs)
     scorer_optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, betas=(0.9, 0.999), weight_decay=1e-3, warmup_steps=0))
     wm_hidden: int = 256
     wm_layers: int = 3
@@ -89,11 +103,17 @@ class WorldModelTrainingConfig:
     def __post_init__(self):
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("scorer_target", self.scorer_target, SCORER_TARGETS)
+        check_choice("encoder", self.encoder, ENCODER_MODES)
         check_choice("precision", self.precision, PRECISIONS)
 
+    def variant(self) -> str:
+        """What sets this run apart from the paper's: ``""``, or e.g. ``"_frozen+explore"``."""
+        parts = [self.scorer_target] if self.scorer_target != "completion" else []
+        parts += [self.encoder] if self.encoder != "finetune" else []
+        return "".join(f"_{p}" for p in parts) + "".join(f"+{name}" for name in self.extra_data)
+
     def run_dir(self) -> Path:
-        suffix = "" if self.scorer_target == "completion" else f"_{self.scorer_target}"
-        return Path(self.out) / self.task / f"seed{self.seed}{suffix}"
+        return Path(self.out) / self.task / f"seed{self.seed}{self.variant()}"
 
 
 PRESETS: dict[str, dict] = {
@@ -107,6 +127,13 @@ PRESETS: dict[str, dict] = {
         "precision": "fp32",  # the same numbers on every machine
     },
 }
+
+
+def training_data(cfg: WorldModelTrainingConfig) -> TrajectoryDataset:
+    """The mixed data of ``cfg`` with its ``extra_data`` datasets appended (trajectory ids renumbered)."""
+    root = Path(cfg.data) / cfg.task
+    datasets = [TrajectoryDataset.load(root / name, task=cfg.task) for name in (cfg.mixed_name, *cfg.extra_data)]
+    return datasets[0] if len(datasets) == 1 else TrajectoryDataset.concat(datasets)
 
 
 def split_trajectories(num_trajectories: int, held_out_fraction: float, seed: int) -> torch.Tensor:
@@ -147,7 +174,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
         return final
     torch.manual_seed(cfg.seed)
     policy = load_policy(cfg.policy_checkpoint, task=cfg.task)
-    mixed = TrajectoryDataset.load(Path(cfg.data) / cfg.task / cfg.mixed_name, task=cfg.task)
+    mixed = training_data(cfg)
     rows = mixed.rows
     target_key = SCORER_TARGETS[cfg.scorer_target]
     if cfg.scorer_target == "dense_reward":  # an in-memory target next to the memory-mapped rows
@@ -169,16 +196,23 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
             autocast_dtype=dtype, progress=cfg.progress,
         ).module
 
-    # Stage 1: latent encoder + task-completion scorer.
-    encoder = LatentEncoder.from_policy(policy)
-    scorer = TaskCompletionScorer(encoder.latent_dim, cfg.scorer_hidden)
-    pair = nn.ModuleDict({"encoder": encoder, "scorer": scorer}).to(cfg.device)
-    scorer_steps = cfg.scorer_steps or cfg.scorer_epochs * -(-len(train_rows) // cfg.scorer_batch_size)
-    ema_pair = train_stage(TaskCompletionLoss(encoder, scorer, target_key), pair, rows, train_rows, (cfg.scorer_batch_size,), scorer_steps, cfg.scorer_optim, "scorer", autocast)
-    encoder, scorer = ema_pair["encoder"].eval(), ema_pair["scorer"].eval()
+    # Stage 1: latent encoder + task-completion scorer (or the scorer alone on frozen latents).
+    encoder = LatentEncoder.from_policy(policy).to(cfg.device)
+    scorer = TaskCompletionScorer(encoder.latent_dim, cfg.scorer_hidden).to(cfg.device)
+    epoch_steps = cfg.scorer_epochs * -(-len(train_rows) // cfg.scorer_batch_size)
+    if cfg.encoder == "finetune":
+        pair = nn.ModuleDict({"encoder": encoder, "scorer": scorer})
+        ema_pair = train_stage(TaskCompletionLoss(encoder, scorer, target_key), pair, rows, train_rows, (cfg.scorer_batch_size,),
+                               cfg.scorer_steps or epoch_steps, cfg.scorer_optim, "scorer", autocast)
+        encoder, scorer = ema_pair["encoder"].eval(), ema_pair["scorer"].eval()
+    encoder.eval().requires_grad_(False)
+    latents = encode_rows(encoder, rows, device=cfg.device)
+    if cfg.encoder == "frozen":
+        table = TensorDict({LATENT: latents, target_key: rows[target_key]}, [len(rows)])
+        scorer = train_stage(TaskCompletionLoss(None, scorer, target_key), scorer, table, train_rows, (cfg.scorer_batch_size,),
+                             cfg.frozen_scorer_steps or epoch_steps, cfg.scorer_optim, "scorer").eval()
 
     # Stage 2: world model on latents of the frozen encoder.
-    latents = encode_rows(encoder, rows, device=cfg.device)
     latent_rows = TensorDict(
         {LATENT: latents, **{k: rows[k] for k in (keys.ACTION, keys.IS_FINAL, keys.TRAJECTORY_ID, keys.STEP, keys.COMPLETION_TARGET, target_key, keys.TERMINAL_LABEL, keys.QUALITY)}},
         batch_size=[len(rows)],
@@ -223,6 +257,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
             "task": cfg.task,
             "config": config_dict(cfg),
             "policy_checkpoint": str(cfg.policy_checkpoint),
+            "encoder_mode": cfg.encoder,
             "policy_config": asdict(policy.config),
             "action_dim": policy.action_dim,
             "state_dim": policy.state_dim,
