@@ -36,7 +36,7 @@ class Config:
     num_candidates: int = 32
     dropout: float = 0.2
     actor_seed: int = 0
-    common_noise: bool = False  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
+    common_noise: bool = True  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
     out: str | None = None  # default: next to the world model
 
 

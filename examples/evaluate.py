@@ -37,7 +37,7 @@ class Config:
     actor_seed: int = 0
     methods: list[str] | None = None  # among base, dalir, random (DALI-R's candidates chosen at random)
     selection: SelectionConfig | None = None  # DALI-R's rule (selection.rule=argmax ...); default: the checkpoint's
-    common_noise: bool = False  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
+    common_noise: bool = True  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
     out: str = "outputs/evaluation"
 
 

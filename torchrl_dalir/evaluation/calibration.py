@@ -5,9 +5,9 @@ Every setting of a rule (the margin, the pessimism ``k``, the temperature) is ch
 that results report. The base policy and every rule of the grid run on the same validation
 episodes; the winner is the entry with the most successes (among those of ``rule`` if one is
 named), ties going to the entry listed first. The grids list the most conservative setting first,
-``margin=1``, which always executes the clean candidate (the base policy's own chunk, with
-DALI-R's sampling noise), so another setting must solve more validation episodes than it to be
-chosen. With 30 validation episodes the best of five settings is partly luck: the test episodes
+``margin=1``, which always executes the clean candidate (with common noise, the default, the
+base policy's own chunk: the base policy's episodes exactly), so another setting must solve more
+validation episodes than it to be chosen. With 30 validation episodes the best of five settings is partly luck: the test episodes
 say what it is worth. The choice is written into the world-model checkpoint, so
 :meth:`RerankingActor.from_checkpoints` uses it with no argument.
 """

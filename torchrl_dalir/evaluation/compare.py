@@ -32,7 +32,7 @@ def evaluate_checkpoints(
     actor_seed: int = 0,
     methods: list[str] | None = None,
     selection: SelectionConfig | None = None,
-    common_noise: bool = False,
+    common_noise: bool = True,
     progress: bool = True,
 ) -> dict[str, dict]:
     """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` is given,
@@ -42,8 +42,9 @@ def evaluate_checkpoints(
     the rule stored in the world-model checkpoint), ``"argmax"`` (DALI-R with the paper's arg-max
     of the state scorer, whatever the checkpoint names) and ``"random"``
     (:class:`RandomCandidateActor`, DALI-R's candidates chosen at random); by default the base
-    policy, and DALI-R if there is a world model. ``common_noise`` gives the reranking methods'
-    clean candidate the base policy's own sampling noise (see :class:`RerankingActor`). Returns
+    policy, and DALI-R if there is a world model. ``common_noise`` (the default) gives the reranking
+    methods' clean candidate the base policy's own sampling noise (common random numbers, see
+    :class:`RerankingActor`): keeping it replays the base policy's episode. Returns
     ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with ``success_rate``, ``episodes``, ``seconds`` and per-episode ``records``; the reranking
     methods' records describe their choices in ``details`` (:func:`decision_summary`).
     """

@@ -47,7 +47,8 @@ class RerankingActor(TensorDictModuleBase):
             call, its noise from torch's global generator) instead of with ``seed``'s noise in the
             candidates' batch (common random numbers): a rule that keeps the clean candidate then
             replays the base policy's episodes, so a paired comparison sees only the decisions
-            where the rule switched. Costs one more batch-1 policy call per decision.
+            where the rule switched (the evaluation functions' default). Costs one more batch-1
+            policy call per decision; decisions then also depend on torch's global seed.
     """
 
     in_keys = [keys.POINT_CLOUD, keys.AGENT_POS]
