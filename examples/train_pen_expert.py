@@ -40,6 +40,7 @@ from tqdm import tqdm
 
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.experts.adroit_pen import DEFAULT_WEIGHTS, OBS_DIM, PenExpertPolicy, make_actor_mlp
+from torchrl_dalir.utils import safe_torch_load
 
 
 @dataclass
@@ -192,7 +193,7 @@ def main(argv: list[str]) -> None:
     optim = torch.optim.Adam(loss_module.parameters(), lr=cfg.lr, eps=1e-5)
 
     start_iter, best = 0, {"success": -1.0, "iteration": -1}
-    ckpt = torch.load(ckpt_path, weights_only=False) if ckpt_path.exists() else None
+    ckpt = safe_torch_load(ckpt_path) if ckpt_path.exists() else None
     # A resumed run reseeds its envs with the iteration so it does not replay the same episodes.
     env_seed = cfg.seed * 1_000_003 + (ckpt["iteration"] if ckpt else 0)
     env = make_train_env(cfg, env_seed)
@@ -292,7 +293,7 @@ def main(argv: list[str]) -> None:
     best_path = run_dir / "best_policy.pt"
     if best_path.exists():
         policy = PenExpertPolicy.load(best_path)
-        meta = torch.load(best_path, weights_only=False)["metadata"]
+        meta = safe_torch_load(best_path)["metadata"]
         policy.save(cfg.output, meta)
         print(f"exported iteration {best['iteration']} (training-seed success {best['success']:.2f}) to {cfg.output}", flush=True)
 

@@ -15,6 +15,7 @@ from torch import nn
 from torchrl.modules import MLP
 
 from torchrl_dalir import keys
+from torchrl_dalir.utils import safe_torch_load
 
 OBS_DIM = 45  # AdroitHandPen-v1's observation: the leading part of the privileged state
 STATE_DIM = 105  # observation (45) + qpos (30) + qvel (30), see TaskSpec.privileged_state
@@ -60,7 +61,7 @@ class PenExpertPolicy(nn.Module):
         path = Path(path) if path is not None else DEFAULT_WEIGHTS
         if not path.exists():
             raise FileNotFoundError(f"no Pen expert weights at {path}; build them with examples/train_pen_expert.py")
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        payload = safe_torch_load(path)
         policy = cls()
         policy.load_state_dict(payload["state_dict"])
         return policy.eval()

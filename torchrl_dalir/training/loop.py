@@ -20,6 +20,8 @@ from torch.optim.swa_utils import AveragedModel
 from torchrl.objectives import LossModule
 from tqdm.auto import tqdm
 
+from torchrl_dalir.utils import safe_torch_load
+
 
 @dataclass
 class OptimConfig:
@@ -59,17 +61,16 @@ def save_checkpoint(path: str | Path, payload: dict) -> None:
 
 
 def load_checkpoint(path: str | Path, kind: str) -> dict:
-    """Loads a checkpoint written by this library and checks that it holds a ``kind`` model."""
+    """Loads a checkpoint written by this library and checks that it holds a ``kind`` model.
+    Refuses (:class:`~torchrl_dalir.utils.UnsafeFileError`) a file holding anything but tensors
+    and plain values, before looking at its kind."""
     path = Path(path)
     if path.is_dir():
         found = sorted(path.glob("*.pt"))
         raise IsADirectoryError(f"{path} is a directory; pass the {kind} checkpoint file in it ({[p.name for p in found] or 'none found'})")
     if not path.exists():
         raise FileNotFoundError(f"no {kind} checkpoint at {path}")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as error:  # not a torch file at all (a JSON file, a truncated download, ...)
-        raise ValueError(f"{path} is not a torchrl_dalir {kind} checkpoint: {error}") from error
+    state = safe_torch_load(path, f"torchrl_dalir {kind} checkpoint")
     if not isinstance(state, dict) or state.get("kind") != kind:
         raise ValueError(f"{path} is not a torchrl_dalir {kind} checkpoint")
     return state
@@ -80,7 +81,7 @@ def training_finished(checkpoint_path: str | Path) -> bool:
     path = Path(checkpoint_path)
     if not path.exists():
         return False
-    state = torch.load(path, map_location="cpu", weights_only=False)
+    state = safe_torch_load(path)
     return state.get("step", 0) >= state.get("num_steps", float("inf"))
 
 
@@ -127,7 +128,7 @@ def fit(
     torch.manual_seed(seed)
     step = 0
     if checkpoint_path.exists():
-        state = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
+        state = safe_torch_load(checkpoint_path)
         model.load_state_dict(state["model"])
         ema.load_state_dict(state["ema"])
         optimizer.load_state_dict(state["optimizer"])
