@@ -48,3 +48,31 @@ def test_evaluate_checkpoints_refuses_unknown_methods_and_reranking_without_a_wo
         evaluate_checkpoints("policy.pt", "world_model.pt", methods=["base", "oracle"])
     with pytest.raises(ValueError, match="need a world_model_path"):
         evaluate_checkpoints("policy.pt", None, methods=["random"])
+
+
+def test_summarize_evaluations_pairs_every_run_against_the_base_policy(tmp_path, monkeypatch, capsys):
+    import json
+    import runpy
+    import sys
+    from pathlib import Path
+
+    def run(name, methods, seed=1):
+        folder = tmp_path / "screen" / "stick-pull" / name
+        folder.mkdir(parents=True)
+        success = {m: {"success_rate": sum(s) / len(s), "selection": rule, "records": [{"success": x} for x in s]} for m, (rule, s) in methods.items()}
+        (folder / "evaluation.json").write_text(json.dumps({"config": {"seed": seed, "episodes": 4}, "success": success}))
+
+    run("a", {"base policy": ("", [True, True, False, False]), "random candidate": ("", [True, False, False, False])})
+    run("b", {"DALI-R": ("argmax(ensemble)", [False, True, True, True])})
+    script = Path(__file__).resolve().parents[1] / "examples" / "summarize_evaluations.py"
+    out = tmp_path / "summary.json"
+    monkeypatch.setattr(sys, "argv", ["x", f"root={tmp_path / 'screen'}", f"out={out}"])
+    runpy.run_path(str(script), run_name="__main__")
+    methods = json.loads(out.read_text())["tasks"]["stick-pull"]["methods"]
+    assert (methods["a/random candidate"]["base_only"], methods["a/random candidate"]["dalir_only"]) == (1, 0)
+    assert (methods["b/DALI-R"]["base_only"], methods["b/DALI-R"]["dalir_only"]) == (1, 2)
+    assert methods["b/DALI-R"]["success_rate"] == 0.75 and methods["b/DALI-R"]["selection"] == "argmax(ensemble)"
+    assert "| | b/DALI-R | argmax(ensemble) | 75.0% | 1 / 2 | 1.00 |" in out.with_suffix(".md").read_text()
+    run("c", {"DALI-R": ("argmax(state)", [True, True, True, True])}, seed=0)  # other episodes: refused
+    with pytest.raises(ValueError, match="different episodes"):
+        runpy.run_path(str(script), run_name="__main__")
