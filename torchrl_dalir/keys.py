@@ -34,3 +34,4 @@ ACTION_MASK = "action_is_pad"  # [..., H] bool, chunk steps padded past the epis
 FUTURE = "future"  # sub-tensordict: the observation k steps ahead (the world model's target)
 LATENT = "latent"  # [..., L] s_t of a frozen latent encoder, precomputed once
 FUTURE_MASK = "future_is_pad"  # [...] bool, the episode ended before t + k: the final observation stands in
+IMAGINED_LATENT = "imagined_latent"  # [..., L] s_hat_{t+k} = s_t + W(s_t, a_{t:t+k}) of a recorded chunk

@@ -80,11 +80,6 @@ class ChunkPolicy3D(TensorDictModuleBase):
         self.check_observation(point_cloud, agent_pos)
         return self.condition(self.point_features(point_cloud), agent_pos, keep)
 
-    def training_pair(self, window: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        """The condition and the normalised demo chunk of a training window (what every loss needs)."""
-        cond = self.encode(window.get(keys.POINT_CLOUD), window.get(keys.AGENT_POS))
-        return cond, self.action_normalizer(window.get(keys.ACTION_CHUNK))
-
     # -- condition -> chunk --------------------------------------------------------------------
     def generate(self, cond: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """Turns noise ``[B, H, A]`` into a normalised chunk, conditioned on ``cond`` ``[B, C]``."""

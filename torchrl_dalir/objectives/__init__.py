@@ -1,5 +1,7 @@
-"""One TorchRL ``LossModule`` per model."""
+"""One TorchRL ``LossModule`` per model, all on :class:`KeyedLossModule` (TorchRL's ``set_keys`` contract)."""
 
+from torchrl_dalir.objectives.chunk_generation import ChunkGenerationLoss
+from torchrl_dalir.objectives.common import KeyedLossModule
 from torchrl_dalir.objectives.consistency_flow_matching import ConsistencyFlowMatchingLoss
 from torchrl_dalir.objectives.diffusion import DiffusionLoss
 from torchrl_dalir.objectives.flow_matching import FlowMatchingLoss
@@ -7,4 +9,13 @@ from torchrl_dalir.objectives.imagined_completion import ImaginedCompletionLoss
 from torchrl_dalir.objectives.latent_dynamics import LatentDynamicsLoss
 from torchrl_dalir.objectives.task_completion import TaskCompletionLoss
 
-__all__ = ["ConsistencyFlowMatchingLoss", "DiffusionLoss", "FlowMatchingLoss", "ImaginedCompletionLoss", "LatentDynamicsLoss", "TaskCompletionLoss"]
+__all__ = [
+    "ChunkGenerationLoss",
+    "ConsistencyFlowMatchingLoss",
+    "DiffusionLoss",
+    "FlowMatchingLoss",
+    "ImaginedCompletionLoss",
+    "KeyedLossModule",
+    "LatentDynamicsLoss",
+    "TaskCompletionLoss",
+]

@@ -3,38 +3,40 @@
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDict, TensorDictBase
-from torchrl.objectives import LossModule
 
 from torchrl_dalir.modules.policies import FlowMatchingPolicy3D
+from torchrl_dalir.objectives.chunk_generation import ChunkGenerationLoss
 
 
-class FlowMatchingLoss(LossModule):
+def straight_path(t: torch.Tensor, chunk: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    """``x_t = t * a + (1 - t) * z`` for path times ``t`` ``[B]``: noise at ``t = 0``, the chunk at ``t = 1``."""
+    t = t[:, None, None]
+    return t * chunk + (1 - t) * noise
+
+
+class FlowMatchingLoss(ChunkGenerationLoss):
     """Regresses the velocity ``a - z`` at ``x_t = t * a + (1 - t) * z``, ``t ~ U[0, 1]`` (MSE).
 
-    Reads the same training windows as :class:`~torchrl_dalir.objectives.DiffusionLoss`.
+    Reads the same training windows, under the same keys, as
+    :class:`~torchrl_dalir.objectives.DiffusionLoss`.
 
     Args:
         policy: the :class:`FlowMatchingPolicy3D` being trained.
 
     Example:
+        >>> from tensordict import TensorDict
         >>> from torchrl_dalir.modules import FlowMatchingPolicy3D, PolicyConfig
-        >>> policy = FlowMatchingPolicy3D(PolicyConfig(down_dims=[32, 64, 128]), 4, 4)
-        >>> batch = TensorDict({"point_cloud": torch.rand(8, 2, 64, 3), "agent_pos": torch.rand(8, 2, 4),
-        ...                     "action_chunk": torch.rand(8, 16, 4)}, [8])
-        >>> FlowMatchingLoss(policy)(batch)["loss_flow_matching"].shape
+        >>> loss = FlowMatchingLoss(FlowMatchingPolicy3D(PolicyConfig(down_dims=[32, 64, 128]), 4, 4))
+        >>> loss.set_keys(action_chunk="expert_chunk")
+        >>> window = TensorDict({"point_cloud": torch.rand(8, 2, 64, 3), "agent_pos": torch.rand(8, 2, 4),
+        ...                      "expert_chunk": torch.rand(8, 16, 4)}, [8])
+        >>> loss(window)["loss_flow_matching"].shape
         torch.Size([])
     """
 
-    def __init__(self, policy: FlowMatchingPolicy3D):
-        super().__init__()
-        self.policy = policy
+    out_keys = ["loss_flow_matching"]
+    policy: FlowMatchingPolicy3D
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDict:
-        policy = self.policy
-        cond, target = policy.training_pair(tensordict)
-        noise = torch.randn_like(target)
-        t = torch.rand(target.shape[0], device=target.device)
-        x_t = t[:, None, None] * target + (1 - t[:, None, None]) * noise
-        loss = torch.nn.functional.mse_loss(policy.velocity(x_t, t, cond), target - noise)
-        return TensorDict({"loss_flow_matching": loss}, [])
+    def chunk_loss(self, cond: torch.Tensor, chunk: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        t = torch.rand(chunk.shape[0], device=chunk.device)
+        return torch.nn.functional.mse_loss(self.policy.velocity(straight_path(t, chunk, noise), t, cond), chunk - noise)
