@@ -35,7 +35,7 @@ def main(argv: list[str]) -> None:
     print(f"trained {cfg.policy} on {cfg.task} in {time.perf_counter() - start:.0f} s: {path}")
     if cfg.eval_episodes:
         policy = load_policy(path, cfg.device, task=cfg.task)
-        actor = receding_horizon(policy, cfg.model.obs_steps, cfg.model.action_steps)
+        actor = receding_horizon(policy)
         result = evaluate(actor, cfg.task, cfg.eval_episodes, cfg.eval_seed, num_points=policy.num_points, history=cfg.model.obs_steps, device=cfg.device, progress=cfg.progress)
         atomic_write_text(path.parent / f"eval_seed{cfg.eval_seed}.json", json.dumps(result.to_dict(), indent=1))
         print(f"{cfg.task} {cfg.policy} seed {cfg.seed}: success {result.success_rate:.1%} over {cfg.eval_episodes} episodes")

@@ -47,8 +47,7 @@ class Source:
         expert: whether the clean policy is the expert; its noise-free successes are tagged
             ``expert``, every other success ``imperfect_success``.
         history: the observation history the policy reads (2 for the base policies). The env
-            then stacks observations and is batched (``SerialEnv(1)``), as TorchRL's
-            receding-horizon wrapper needs; only the newest frame is stored.
+            then stacks observations (in a ``SerialEnv(1)``); only the newest frame is stored.
     """
 
     name: str

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import torch
 from torchrl.data import Categorical, Composite
-from torchrl.envs import CatFrames, EnvBase, GymWrapper, InitTracker, TransformedEnv, UnsqueezeTransform
+from torchrl.envs import CatFrames, EnvBase, GymWrapper, InitTracker, ParallelEnv, TransformedEnv, UnsqueezeTransform
+from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.gym_like import default_info_dict_reader
 
 from torchrl_dalir import keys
@@ -32,7 +33,10 @@ def make_env(
         task: a name from :data:`torchrl_dalir.envs.TASKS`, any MetaWorld v3 task name, or a
             :class:`TaskSpec`.
         seed: seeds the first episode; the same seed gives the same episodes. ``None`` leaves
-            the env unseeded.
+            the env unseeded. In a ``SerialEnv``/``ParallelEnv``, ``reset(seed=s)`` gives every
+            worker the same seed, hence the same episode (TorchRL passes reset keywords to each
+            worker); seed the workers apart with ``env.set_seed(s)`` or
+            ``env.reset(list_of_kwargs=[{"seed": s + i} for i in range(env.num_workers)])``.
         num_points: points per cloud after farthest-point sampling.
         render: ``False`` gives a state-only env without ``point_cloud`` (for experts; ~10x faster).
         history: with ``history > 1``, ``point_cloud`` and ``agent_pos`` carry the last
@@ -60,3 +64,35 @@ def make_env(
     if seed is not None:
         env.set_seed(seed)
     return env
+
+
+def env_task(env: EnvBase) -> str | None:
+    """The name of the task an env built by :func:`make_env` runs, also as the workers of a
+    ``SerialEnv`` or ``ParallelEnv`` (started if needed; they must all run the same task);
+    ``None`` for any other env."""
+    while isinstance(env, TransformedEnv):
+        env = env.base_env
+    if not isinstance(env, BatchedEnvBase):
+        found = [getattr(env, "task", None)]  # a GymWrapper forwards to PointCloudObservation.task
+    else:
+        if isinstance(env, ParallelEnv) and not _workers_run_point_clouds(env):
+            return None  # asking a worker for an attribute it lacks kills it
+        if env.is_closed:
+            env.start()
+        try:
+            found = list(env.task)
+        except AttributeError:
+            return None
+    if not found or not all(isinstance(task, TaskSpec) for task in found):
+        return None
+    names = sorted({task.name for task in found})
+    if len(names) > 1:
+        raise ValueError(f"the env's workers run different tasks: {names}")
+    return names[0]
+
+
+def _workers_run_point_clouds(env: ParallelEnv) -> bool:
+    """Whether the metadata of every worker shows an env of :func:`make_env`."""
+    meta = getattr(env, "meta_data", None)
+    meta = meta if isinstance(meta, list) else [meta]
+    return all(PointCloudObservation.__name__ in getattr(m, "env_str", "") for m in meta)

@@ -60,7 +60,6 @@ def evaluate_checkpoints(
     policy = load_policy(policy_path, device)
     if world_model_path is not None:  # fails now, not after the base policy's episodes
         stored = SelectionConfig.stored_in(load_checkpoint(world_model_path, "world_model"))
-    steps = (policy.config.obs_steps, policy.config.action_steps)
     reranking = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
     rules = {"dalir": {"selection": selection} if selection is not None else {}, "argmax": {"selection": SelectionConfig()}, "random": {}}
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}
@@ -73,13 +72,13 @@ def evaluate_checkpoints(
                 continue
         start = time.perf_counter()
         if method == "base":
-            actor, describe = receding_horizon(policy, *steps), None
+            actor, describe = receding_horizon(policy), None
         else:
             chooser = reranking[method].on_policy(
                 policy, world_model_path, device, num_candidates=num_candidates, candidates=PointDropout(dropout), seed=actor_seed,
                 common_noise=common_noise, **rules[method],
             )
-            actor = receding_horizon(chooser, *steps, decision_keys=[CANDIDATE_SCORES, CHOSEN_CANDIDATE])
+            actor = receding_horizon(chooser)  # every step carries its decision's scores and choice
             describe = partial(decision_summary, action_steps=policy.config.action_steps)
         name = METHODS[method]
         torch.manual_seed(actor_seed)  # after building the actor, whose modules' initialisation draws from it
@@ -114,11 +113,11 @@ def paired_sign_test(base: list[bool], dalir: list[bool]) -> dict:
 
 
 def decision_summary(rollout: TensorDictBase, action_steps: int) -> dict:
-    """DALI-R's choices over one episode (a rollout run with ``decision_keys=[CANDIDATE_SCORES,
-    CHOSEN_CANDIDATE]``): the fraction of decisions that kept the clean candidate, and the mean
-    over decisions of the clean candidate's score, the chosen one's margin over it, and the
-    spread (std) of the candidates' scores. Small margins next to the scorer's errors mean the
-    choice is close to random."""
+    """DALI-R's choices over one episode (a rollout of ``receding_horizon(RerankingActor(...))``,
+    whose steps carry :data:`CANDIDATE_SCORES` and :data:`CHOSEN_CANDIDATE`): the fraction of
+    decisions that kept the clean candidate, and the mean over decisions of the clean candidate's
+    score, the chosen one's margin over it, and the spread (std) of the candidates' scores. Small
+    margins next to the scorer's errors mean the choice is close to random."""
     decisions = rollout[..., ::action_steps]  # every step repeats its decision's values
     scores, chosen = decisions[CANDIDATE_SCORES].float(), decisions[CHOSEN_CANDIDATE]
     clean = scores[..., 0]

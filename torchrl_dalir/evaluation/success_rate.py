@@ -62,8 +62,7 @@ def evaluate(
         task: the task name.
         num_episodes: how many episodes.
         seed: the evaluation seed.
-        env: a batched env of size 1 to reuse (by default ``SerialEnv(1, make_env(task, **env_kwargs))``;
-            batched because TorchRL's receding-horizon wrapper needs a batch dimension).
+        env: an env of one episode at a time to reuse (by default ``SerialEnv(1, make_env(task, **env_kwargs))``).
         progress: show a progress bar.
         describe: computes extra per-episode values from the episode's rollout, kept in the
             record's ``details`` (e.g. :func:`torchrl_dalir.evaluation.compare.decision_summary`).

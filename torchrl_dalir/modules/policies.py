@@ -1,15 +1,18 @@
 """The base 3D policies: DP3-style diffusion and 3D flow matching over action chunks.
 
 Both read a 2-step history of ``point_cloud`` ``[..., To, N, 3]`` and ``agent_pos``
-``[..., To, D]`` and write ``action_chunk`` ``[..., H, A]``; they differ only in how a chunk is
-generated from noise (:meth:`ChunkPolicy3D.generate`). Inputs and outputs are in the env's
-units; min-max normalizers fitted on the demos live inside the module and are saved with it.
+``[..., To, D]`` (with or without batch dimensions) and write ``action_chunk`` ``[..., H, A]``;
+they differ only in how a chunk is generated from noise (:meth:`ChunkPolicy3D.generate`).
+Inputs and outputs are in the env's units; min-max normalizers fitted on the demos live inside
+the module and are saved with it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_dalir import keys
@@ -26,15 +29,25 @@ class ChunkPolicy3D(TensorDictModuleBase):
         config: the architecture.
         action_dim: ``A``.
         state_dim: ``D``, the size of ``agent_pos``.
+        in_keys: where it reads the point cloud and the robot state (default ``point_cloud``, ``agent_pos``).
+        out_keys: where it writes the chunk (default ``action_chunk``).
     """
 
-    in_keys = [keys.POINT_CLOUD, keys.AGENT_POS]
-    out_keys = [keys.ACTION_CHUNK]
-
-    def __init__(self, config: PolicyConfig, action_dim: int, state_dim: int):
+    def __init__(
+        self,
+        config: PolicyConfig,
+        action_dim: int,
+        state_dim: int,
+        *,
+        in_keys: Sequence[NestedKey] = (keys.POINT_CLOUD, keys.AGENT_POS),
+        out_keys: Sequence[NestedKey] = (keys.ACTION_CHUNK,),
+    ):
         super().__init__()
+        self.in_keys, self.out_keys = list(in_keys), list(out_keys)
         self.config = config
         self.action_dim, self.state_dim = action_dim, state_dim
+        self.task: str | None = None  # the task and cloud size it was trained on (set by ``load_policy``)
+        self.num_points: int | None = None
         self.point_normalizer = MinMaxNormalizer(3)
         self.state_normalizer = MinMaxNormalizer(state_dim)
         self.action_normalizer = MinMaxNormalizer(action_dim)
@@ -55,15 +68,38 @@ class ChunkPolicy3D(TensorDictModuleBase):
     # -- observation -> condition ------------------------------------------------------------
     def check_observation(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> None:
         to = self.config.obs_steps
-        if point_cloud.dim() < 4 or point_cloud.shape[-3] != to or point_cloud.shape[-1] != 3:
+        if point_cloud.dim() < 3 or point_cloud.shape[-3] != to or point_cloud.shape[-1] != 3:
             raise ValueError(
                 f"point_cloud must be [..., {to}, N, 3] (a {to}-step history; stack it with "
                 f"torchrl_dalir.envs.make_env(..., history={to})), got {tuple(point_cloud.shape)}"
             )
         if agent_pos.shape[-2:] != (to, self.state_dim):
-            raise ValueError(f"agent_pos must be [..., {to}, {self.state_dim}], got {tuple(agent_pos.shape)}")
+            raise ValueError(
+                f"agent_pos must be [..., {to}, {self.state_dim}] (the policy's {self.state_dim}-D robot state, "
+                f"a {to}-step history), got {tuple(agent_pos.shape)}"
+            )
         if not (torch.isfinite(point_cloud).all() and torch.isfinite(agent_pos).all()):
             raise ValueError("the observation contains NaN or infinite values")
+
+    def read_observation(self, tensordict: TensorDictBase, in_keys: Sequence[NestedKey] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The point cloud and robot state an actor reads from ``tensordict`` (at ``in_keys``, by default the
+        policy's), refused unless they are what the policy acts on: a history of ``obs_steps`` frames for every
+        batch entry, and the cloud size it was trained on."""
+        cloud_key, state_key = in_keys if in_keys is not None else self.in_keys
+        cloud, agent_pos = tensordict.get(cloud_key), tensordict.get(state_key)
+        self.check_observation(cloud, agent_pos)
+        to = self.config.obs_steps
+        if cloud.dim() - 3 < tensordict.batch_dims:
+            raise ValueError(
+                f"point_cloud is {tuple(cloud.shape)} in a tensordict of batch size {list(tensordict.batch_size)}: it must "
+                f"be [*batch, {to}, N, 3], a {to}-step history (torchrl_dalir.envs.make_env(..., history={to}))"
+            )
+        if self.num_points is not None and cloud.shape[-2] != self.num_points:
+            raise ValueError(
+                f"the policy was trained on {self.num_points}-point clouds; the observation has {cloud.shape[-2]} points "
+                f"(torchrl_dalir.envs.make_env(..., num_points={self.num_points}))"
+            )
+        return cloud, agent_pos
 
     def point_features(self, point_cloud: torch.Tensor) -> torch.Tensor:
         """Per-point features of normalised clouds ``[..., To, N, 3]`` -> ``[..., To, N, C]``."""
@@ -101,8 +137,9 @@ class ChunkPolicy3D(TensorDictModuleBase):
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase, generator: torch.Generator | None = None) -> TensorDictBase:
-        cond = self.encode(tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS))
-        return tensordict.set(keys.ACTION_CHUNK, self.sample(cond, generator))
+        cloud, agent_pos = self.read_observation(tensordict)
+        cond = self.condition(self.point_features(cloud), agent_pos)  # ``encode`` without checking again
+        return tensordict.set(self.out_keys[0], self.sample(cond, generator))
 
 
 class DiffusionPolicy3D(ChunkPolicy3D):
@@ -116,8 +153,8 @@ class DiffusionPolicy3D(ChunkPolicy3D):
         torch.Size([3, 16, 4])
     """
 
-    def __init__(self, config: PolicyConfig, action_dim: int, state_dim: int):
-        super().__init__(config, action_dim, state_dim)
+    def __init__(self, config: PolicyConfig, action_dim: int, state_dim: int, **key_names):
+        super().__init__(config, action_dim, state_dim, **key_names)
         from diffusers import DDIMScheduler
 
         self.scheduler = DDIMScheduler(
@@ -162,6 +199,6 @@ class FlowMatchingPolicy3D(ChunkPolicy3D):
         return x
 
 
-def make_policy(config: PolicyConfig, action_dim: int, state_dim: int) -> ChunkPolicy3D:
-    """The policy class that ``config.kind`` names."""
-    return {"dp": DiffusionPolicy3D, "fm": FlowMatchingPolicy3D}[config.kind](config, action_dim, state_dim)
+def make_policy(config: PolicyConfig, action_dim: int, state_dim: int, **key_names) -> ChunkPolicy3D:
+    """The policy class that ``config.kind`` names (``key_names``: its ``in_keys``/``out_keys``)."""
+    return {"dp": DiffusionPolicy3D, "fm": FlowMatchingPolicy3D}[config.kind](config, action_dim, state_dim, **key_names)

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_dalir import keys
@@ -28,7 +29,8 @@ class RerankingActor(TensorDictModuleBase):
     the arg-max) and write the chosen chunk to ``action_chunk`` (plus every score and the
     chosen index).
     Wrap it with :func:`~torchrl_dalir.modules.receding_horizon.receding_horizon` exactly like
-    the base policy to execute 8 of 16 actions per decision.
+    the base policy to execute 8 of 16 actions per decision; every step then carries its decision's
+    scores and chosen index. :meth:`reset` replays its decisions from the start.
 
     Args:
         policy: the frozen base policy.
@@ -49,10 +51,10 @@ class RerankingActor(TensorDictModuleBase):
             replays the base policy's episodes, so a paired comparison sees only the decisions
             where the rule switched (the evaluation functions' default). Costs one more batch-1
             policy call per decision; decisions then also depend on torch's global seed.
+        in_keys: where it reads the point cloud and the robot state (default ``point_cloud``, ``agent_pos``).
+        out_keys: where it writes the chosen chunk, the candidates' scores and the chosen index
+            (default ``action_chunk``, :data:`CANDIDATE_SCORES`, :data:`CHOSEN_CANDIDATE`).
     """
-
-    in_keys = [keys.POINT_CLOUD, keys.AGENT_POS]
-    out_keys = [keys.ACTION_CHUNK, CANDIDATE_SCORES, CHOSEN_CANDIDATE]
 
     def __init__(
         self,
@@ -67,8 +69,11 @@ class RerankingActor(TensorDictModuleBase):
         ensemble: ScorerEnsemble | None = None,
         selection: SelectionConfig | None = None,
         common_noise: bool = False,
+        in_keys: Sequence[NestedKey] = (keys.POINT_CLOUD, keys.AGENT_POS),
+        out_keys: Sequence[NestedKey] = (keys.ACTION_CHUNK, CANDIDATE_SCORES, CHOSEN_CANDIDATE),
     ):
         super().__init__()
+        self.in_keys, self.out_keys = list(in_keys), list(out_keys)
         if num_candidates < 1:
             raise ValueError("num_candidates must be at least 1")
         if world_model.action_dim != policy.action_dim:
@@ -89,6 +94,14 @@ class RerankingActor(TensorDictModuleBase):
         self.candidates = candidates if candidates is not None else PointDropout(0.2)
         self.seed, self.common_noise = seed, common_noise
         self.generator = torch.Generator().manual_seed(seed)
+
+    def reset(self, seed: int | None = None) -> None:
+        """Restarts candidates and choices from ``seed`` (by default the actor's own ``seed``), so the same object
+        replays its decisions. With ``common_noise``, seed torch too (``torch.manual_seed``): the clean candidate
+        draws from its global generator."""
+        if seed is not None:
+            self.seed = seed
+        self.generator.manual_seed(self.seed)
 
     @classmethod
     def from_checkpoints(cls, policy_path: str | Path, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
@@ -154,14 +167,14 @@ class RerankingActor(TensorDictModuleBase):
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        cloud, agent_pos = tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS)
-        self.policy.check_observation(cloud, agent_pos)
+        cloud, agent_pos = self.policy.read_observation(tensordict, self.in_keys)
         batch = cloud.shape[:-3]
         cloud, agent_pos = cloud.reshape(-1, *cloud.shape[-3:]), agent_pos.reshape(-1, *agent_pos.shape[-2:])
         chunks = self.sample_candidates(cloud, agent_pos)
         members = self.member_scores(cloud, agent_pos, chunks)
         best = select(members, self.selection, self.generator)
         chosen = chunks[torch.arange(len(best)), best]
-        tensordict.set(keys.ACTION_CHUNK, chosen.reshape(*batch, *chosen.shape[1:]))
-        tensordict.set(CANDIDATE_SCORES, members.mean(1).reshape(*batch, -1))
-        return tensordict.set(CHOSEN_CANDIDATE, best.reshape(batch))
+        chunk_key, scores_key, chosen_key = self.out_keys
+        tensordict.set(chunk_key, chosen.reshape(*batch, *chosen.shape[1:]))
+        tensordict.set(scores_key, members.mean(1).reshape(*batch, -1))
+        return tensordict.set(chosen_key, best.reshape(batch))

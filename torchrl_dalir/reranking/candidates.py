@@ -105,7 +105,7 @@ class DropoutPolicy(TensorDictModuleBase):
         self.policy, self.dropout = policy, PointDropout(p, seed)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        cloud, agent_pos = tensordict.get(keys.POINT_CLOUD), tensordict.get(keys.AGENT_POS)
+        cloud, agent_pos = self.policy.read_observation(tensordict, self.in_keys)
         keep = self.dropout.keep_masks(cloud.shape[:-1]).to(cloud.device)
         cond = self.policy.encode(cloud, agent_pos, keep)
-        return tensordict.set(keys.ACTION_CHUNK, self.policy.sample(cond))
+        return tensordict.set(self.out_keys[0], self.policy.sample(cond))

@@ -139,12 +139,13 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
     return run_dir / "checkpoint.pt"
 
 
-def load_policy(path: str | Path, device: str | torch.device = "cpu", task: str | None = None) -> ChunkPolicy3D:
-    """Loads the EMA policy of a checkpoint, in eval mode; refuses another task's policy."""
+def load_policy(path: str | Path, device: str | torch.device = "cpu", task: str | None = None, **key_names) -> ChunkPolicy3D:
+    """Loads the EMA policy of a checkpoint, in eval mode; refuses another task's policy.
+    ``key_names``: the policy's ``in_keys``/``out_keys`` if not the defaults."""
     state = load_checkpoint(path, "policy")
     if task is not None and state["task"] != task:
         raise ValueError(f"{path} holds a policy for task {state['task']!r}, not {task!r}")
-    policy = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])
+    policy = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"], **key_names)
     policy.load_state_dict(state["policy_state"])
     policy.num_points = state["num_points"]  # the cloud size it was trained on
     policy.task = state["task"]
@@ -156,8 +157,7 @@ def policy_actor(path: str | Path, device: str = "cpu"):
     of this function, e.g. as a collection :class:`~torchrl_dalir.data.Source`'s policy)."""
     from torchrl_dalir.modules.receding_horizon import receding_horizon
 
-    policy = load_policy(path, device)
-    return receding_horizon(policy, policy.config.obs_steps, policy.config.action_steps)
+    return receding_horizon(load_policy(path, device))
 
 
 def exploration_actor(path: str | Path, dropout: float = 0.2, seed: int = 0, device: str = "cpu"):
@@ -167,5 +167,4 @@ def exploration_actor(path: str | Path, dropout: float = 0.2, seed: int = 0, dev
     from torchrl_dalir.modules.receding_horizon import receding_horizon
     from torchrl_dalir.reranking.candidates import DropoutPolicy
 
-    policy = load_policy(path, device)
-    return receding_horizon(DropoutPolicy(policy, dropout, seed), policy.config.obs_steps, policy.config.action_steps)
+    return receding_horizon(DropoutPolicy(load_policy(path, device), dropout, seed))
