@@ -66,7 +66,8 @@ def main(argv: list[str]) -> None:
     table = "\n".join(lines)
     print(table)
     out = Path(cfg.out)
-    atomic_write_text(out, json.dumps({"root": cfg.root, "tasks": tasks}, indent=1))
+    command = " ".join(["python examples/summarize_evaluations.py", *argv])
+    atomic_write_text(out, json.dumps({"command": command, "runs": {t: sorted(e["methods"]) for t, e in tasks.items()}, "tasks": tasks}, indent=1))
     atomic_write_text(out.with_suffix(".md"), table + "\n")
 
 
