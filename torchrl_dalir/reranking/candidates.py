@@ -107,5 +107,5 @@ class DropoutPolicy(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         cloud, agent_pos = self.policy.read_observation(tensordict, self.in_keys)
         keep = self.dropout.keep_masks(cloud.shape[:-1]).to(cloud.device)
-        cond = self.policy.encode(cloud, agent_pos, keep)
+        cond = self.policy.condition(self.policy.point_features(cloud), agent_pos, keep)  # checked by read_observation
         return tensordict.set(self.out_keys[0], self.policy.sample(cond))
