@@ -5,8 +5,9 @@
 
 The base policy and every rule of the grid (``evaluation.calibration``: the margin rule's
 settings, then the other rules for comparison) run on the same validation episodes (evaluation
-seed ``seed``, never the test seed 0). The best setting of ``rule`` is written into the world-model
-checkpoint, which ``RerankingActor.from_checkpoints`` and ``examples/evaluate.py`` then use.
+seed ``seed``, never the test seed 0). The best setting (of ``rule``, if given) among those that
+beat the base policy with a one-sided sign-test p-value of at most ``alpha`` (otherwise the most
+conservative setting, the base policy itself) is written into the world-model checkpoint, which ``RerankingActor.from_checkpoints`` and ``examples/evaluate.py`` then use.
 Writes ``<out>/calibration.json`` and prints the table.
 """
 
@@ -18,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from torchrl_dalir.config import check_choice, config_dict, parse_config
-from torchrl_dalir.evaluation.calibration import GRIDS, TEST_SEED, VALIDATION_SEED, calibrate
+from torchrl_dalir.evaluation.calibration import ALPHA, GRIDS, TEST_SEED, VALIDATION_SEED, calibrate
 from torchrl_dalir.utils import atomic_write_text
 
 
@@ -31,6 +32,7 @@ class Config:
     test_seed: int = TEST_SEED  # the evaluation seed of the episodes you report: refused here
     grid: str = "all"  # the entries evaluated: margin (the default rule's settings) | all (and the other rules)
     rule: str | None = None  # choose only among this rule's settings (default: among every entry of the grid)
+    alpha: float = ALPHA  # evidence needed to leave the base policy: one-sided sign-test p-value on the validation episodes (1: the best entry)
     write: bool = True  # store the chosen setting in the world-model checkpoint
     device: str = "cpu"
     num_candidates: int = 32
@@ -44,7 +46,7 @@ def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
     check_choice("grid", cfg.grid, GRIDS)
     record = calibrate(
-        cfg.policy, cfg.world_model, grid=GRIDS[cfg.grid], rule=cfg.rule, episodes=cfg.episodes, seed=cfg.seed, test_seed=cfg.test_seed, write=cfg.write,
+        cfg.policy, cfg.world_model, grid=GRIDS[cfg.grid], rule=cfg.rule, alpha=cfg.alpha, episodes=cfg.episodes, seed=cfg.seed, test_seed=cfg.test_seed, write=cfg.write,
         device=cfg.device, num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed,
         common_noise=cfg.common_noise,
     )

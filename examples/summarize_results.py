@@ -3,8 +3,9 @@
     python examples/summarize_results.py out=outputs/pipeline
     python examples/summarize_results.py out=outputs/pipeline trusted_json=docs/results/trusted_selection.json
 
-Reads every ``<out>/results/<task>/<policy>_seed<seed>[_<scorer target>]/results.json`` and writes
-``<out>/summary.md``, ``<out>/summary.json`` and ``<out>/summary_<policy>.png``: per task and backbone,
+Reads every ``<out>/results/<task>/<policy>_seed<seed><variant>/results.json`` and writes
+``<out>/summary.md``, ``<out>/summary.json`` and ``<out>/summary_<policy>.png``: per task, backbone and
+world-model variant (``paper``, or what the run changed, e.g. ``frozen+explore``),
 base-policy and DALI-R success as mean +- std over seeds (population std), the difference, and
 an episode-paired sign test over all seeds' episodes (how many episodes only one method solved).
 
@@ -28,6 +29,7 @@ from torchrl_dalir.evaluation.compare import METHODS, paired_sign_test
 from torchrl_dalir.evaluation.plots import plot_success_by_task
 from torchrl_dalir.utils import atomic_write_text
 
+PAPER = "paper"  # the paper's world model and data (no variant)
 TRUSTED = (("base", "base policy"), ("dalir", "DALI-R, calibrated rule"), ("argmax", "DALI-R, arg-max (paper)"), ("random", "random candidate"))
 
 
@@ -35,26 +37,38 @@ TRUSTED = (("base", "base policy"), ("dalir", "DALI-R, calibrated rule"), ("argm
 class Config:
     out: str = "outputs/pipeline"
     trusted_json: str | None = None  # also write the trusted-selection data here (e.g. docs/results/trusted_selection.json)
+    variant: str = PAPER  # the world-model variant of the trusted-selection table (e.g. frozen+explore)
+
+
+def variant_label(run_name: str, policy: str, seed: int) -> str:
+    """The world-model variant of a run folder ``<policy>_seed<seed><variant>``, with the seed
+    taken out of the datasets it names (``fm_seed0_frozen+explore_fm_seed0`` -> ``frozen+explore``),
+    so that the seeds of one variant group together; ``paper`` for none."""
+    own = f"_{policy}_seed{seed}"
+    return run_name.removeprefix(own[1:]).replace(own, "").lstrip("_") or PAPER
 
 
 def gather(root: Path) -> list[dict]:
-    """One row per (task, policy, scorer target): per method (short name) the per-seed success
-    rates and every seed's per-episode successes; the DALI-R rule of each seed; and the sign test
-    of DALI-R against the base policy."""
-    groups = defaultdict(lambda: {"seeds": [], "episodes": set(), "rules": [], "episode_success": defaultdict(list), **{m: [] for m in METHODS}})
+    """One row per (task, policy, world-model variant): per method (short name) the per-seed success
+    rates and every seed's per-episode successes; the run folder and DALI-R rule of each seed; and
+    the sign test of DALI-R against the base policy."""
+    groups = defaultdict(lambda: {"seeds": [], "runs": [], "episodes": set(), "rules": [], "episode_success": defaultdict(list),
+                                  **{m: [] for m in METHODS}})
     for path in sorted(root.glob("results/*/*/results.json")):
         result = json.loads(path.read_text())
         cfg = result["config"]
-        group = groups[(cfg["task"], cfg["policy"], cfg["world_model"].get("scorer_target", "completion"))]
+        run = path.parent.name
+        group = groups[(cfg["task"], cfg["policy"], variant_label(run, cfg["policy"], cfg["seed"]))]
         group["seeds"].append(cfg["seed"])
+        group["runs"].append(run)
         group["episodes"].add(cfg["eval_episodes"])
         group["rules"].append(result["success"]["DALI-R"].get("selection", "argmax(state)"))
         for short, name in METHODS.items():
             if name in result["success"]:
                 group[short].append(result["success"][name]["success_rate"])
                 group["episode_success"][short].extend(r["success"] for r in result["success"][name]["records"])
-    return [{"task": t, "policy": p, "scorer_target": s, **g, "episodes": sorted(g["episodes"]), "episode_success": dict(g["episode_success"]),
-             **paired_sign_test(g["episode_success"]["base"], g["episode_success"]["dalir"])} for (t, p, s), g in groups.items()]
+    return [{"task": t, "policy": p, "variant": v, **g, "episodes": sorted(g["episodes"]), "episode_success": dict(g["episode_success"]),
+             **paired_sign_test(g["episode_success"]["base"], g["episode_success"]["dalir"])} for (t, p, v), g in groups.items()]
 
 
 def pct(values) -> str:
@@ -62,35 +76,35 @@ def pct(values) -> str:
 
 
 def summary_table(table: list[dict]) -> str:
-    lines = ["| task | policy | scorer target | seeds | episodes per seed | base policy (%) | + DALI-R (%) | difference (points) "
+    lines = ["| task | policy | world model | seeds | episodes per seed | base policy (%) | + DALI-R (%) | difference (points) "
              "| episodes only base / only DALI-R solved | sign-test p |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for row in table:
         difference = [d - b for b, d in zip(row["base"], row["dalir"])]
-        lines.append(f"| {row['task']} | {row['policy']} | {row['scorer_target']} | {len(row['seeds'])} | "
+        lines.append(f"| {row['task']} | {row['policy']} | {row['variant']} | {len(row['seeds'])} | "
                      f"{', '.join(map(str, row['episodes']))} | {pct(row['base'])} | {pct(row['dalir'])} | {100 * mean(difference):+.1f} | "
                      f"{row['base_only']} / {row['dalir_only']} | {row['p_value']:.2f} |")
-    for policy, target in sorted({(row["policy"], row["scorer_target"]) for row in table}):
-        rows = [row for row in table if (row["policy"], row["scorer_target"]) == (policy, target)]
+    for policy, variant in sorted({(row["policy"], row["variant"]) for row in table}):
+        rows = [row for row in table if (row["policy"], row["variant"]) == (policy, variant)]
         if len(rows) > 1:  # the mean of the per-task differences; every task's episodes pooled for the test
             test = paired_sign_test(*(sum((row["episode_success"][m] for row in rows), []) for m in ("base", "dalir")))
             difference = mean(mean(d - b for b, d in zip(row["base"], row["dalir"])) for row in rows)
-            lines.append(f"| all {len(rows)} tasks | {policy} | {target} | | | | | {100 * difference:+.1f} | "
+            lines.append(f"| all {len(rows)} tasks | {policy} | {variant} | | | | | {100 * difference:+.1f} | "
                          f"{test['base_only']} / {test['dalir_only']} | {test['p_value']:.2f} |")
     return "\n".join(lines) + "\n"
 
 
-def trusted_rows(table: list[dict], policy: str) -> list[dict]:
-    """The rows of ``policy`` (sparse-label scorer) whose every seed evaluated all four methods."""
-    return [row for row in table if row["policy"] == policy and row["scorer_target"] == "completion"
+def trusted_rows(table: list[dict], policy: str, variant: str) -> list[dict]:
+    """The rows of ``policy`` and world-model ``variant`` whose every seed evaluated all four methods."""
+    return [row for row in table if row["policy"] == policy and row["variant"] == variant
             and all(len(row[m]) == len(row["seeds"]) for m, _ in TRUSTED)]
 
 
-def validation_rates(root: Path, task: str, policy: str, seeds: list[int]) -> dict:
+def validation_rates(root: Path, task: str, seeds: list[int], runs: list[str]) -> dict:
     """Each seed's calibration on validation episodes: base and every grid entry's success (%)."""
     out = {}
-    for seed in seeds:
-        path = root / "calibration" / task / f"{policy}_seed{seed}" / "calibration.json"
+    for seed, run in zip(seeds, runs):
+        path = root / "calibration" / task / run / "calibration.json"
         record = json.loads(path.read_text()) if path.exists() else None
         if record and record.get("entries"):
             out[str(seed)] = {"episodes": record["episodes"], "seed": record["seed"], "base": round(100 * record["base_success_rate"], 1),
@@ -98,14 +112,14 @@ def validation_rates(root: Path, task: str, policy: str, seeds: list[int]) -> di
     return out
 
 
-def trusted_selection(table: list[dict], root: Path) -> dict:
-    """The trusted-selection data: per backbone (``fm`` at the top level, others under their name)
-    and task, the mean success (%) of every method, seeds, episodes per seed and the default's
+def trusted_selection(table: list[dict], root: Path, variant: str = PAPER) -> dict:
+    """The trusted-selection data of world-model ``variant``: per backbone (``fm`` at the top
+    level, others under their name) and task, the mean success (%) of every method, seeds, episodes per seed and the default's
     sign test against the base policy; the default rule (the rule family that calibration chose
     from, with each seed's setting under ``rules``) and the mean gain over the tasks."""
     out = {}
     for policy in sorted({row["policy"] for row in table}):
-        rows = trusted_rows(table, policy)
+        rows = trusted_rows(table, policy, variant)
         if not rows:
             continue
         tasks = {row["task"]: {"base": 100 * mean(row["base"]), "default": 100 * mean(row["dalir"]), "argmax": 100 * mean(row["argmax"]),
@@ -113,9 +127,9 @@ def trusted_selection(table: list[dict], root: Path) -> dict:
                                "episodes": row["episodes"][0] if len(row["episodes"]) == 1 else row["episodes"],
                                "p_default_vs_base": row["p_value"], "only_base": row["base_only"], "only_default": row["dalir_only"],
                                "rules": dict(zip(map(str, row["seeds"]), row["rules"])),
-                               "validation": validation_rates(root, row["task"], policy, row["seeds"])} for row in rows}
+                               "validation": validation_rates(root, row["task"], row["seeds"], row["runs"])} for row in rows}
         families = sorted({rule.split("(")[0] for t in tasks.values() for rule in t["rules"].values()})
-        block = {"tasks": {task: {k: round(v, 4 if k.startswith("p_") else 1) if isinstance(v, float) else v for k, v in t.items()}
+        block = {"variant": variant, "tasks": {task: {k: round(v, 4 if k.startswith("p_") else 1) if isinstance(v, float) else v for k, v in t.items()}
                            for task, t in tasks.items()},
                  "default_rule": " / ".join(families),
                  "mean_gain": round(mean(t["default"] - t["base"] for t in tasks.values()), 1),
@@ -151,10 +165,10 @@ def main(argv: list[str]) -> None:
     atomic_write_text(root / "summary.md", text)
     atomic_write_text(root / "summary.json", json.dumps(table, indent=1))
     for policy in sorted({row["policy"] for row in table}):
-        rows = [row for row in table if row["policy"] == policy and row["scorer_target"] == "completion"]
+        rows = [row for row in table if row["policy"] == policy and row["variant"] == cfg.variant]
         if rows:
             plot_success_by_task(rows, root / f"summary_{policy}.png", title=f"DALI-R on a frozen {policy.upper()} policy")
-    trusted = trusted_selection(table, root)
+    trusted = trusted_selection(table, root, cfg.variant)
     if trusted:
         text = trusted_table(trusted)
         print(text)
@@ -162,7 +176,7 @@ def main(argv: list[str]) -> None:
         for path in [root / "trusted_selection.json", *([Path(cfg.trusted_json)] if cfg.trusted_json else [])]:
             atomic_write_text(path, json.dumps(trusted, indent=1) + "\n")
         for policy in sorted({row["policy"] for row in table}):
-            rows = trusted_rows(table, policy)
+            rows = trusted_rows(table, policy, cfg.variant)
             if rows:
                 plot_success_by_task(rows, root / f"trusted_selection_{policy}.png", title=f"Selection rules on a frozen {policy.upper()} policy", methods=TRUSTED)
 

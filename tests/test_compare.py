@@ -76,3 +76,33 @@ def test_summarize_evaluations_pairs_every_run_against_the_base_policy(tmp_path,
     run("c", {"DALI-R": ("argmax(state)", [True, True, True, True])}, seed=0)  # other episodes: refused
     with pytest.raises(ValueError, match="different episodes"):
         runpy.run_path(str(script), run_name="__main__")
+
+
+def test_summarize_results_groups_seeds_by_world_model_variant(tmp_path, monkeypatch):
+    import json
+    import runpy
+    import sys
+    from pathlib import Path
+
+    def run(folder, seed, base, dalir):
+        path = tmp_path / "results" / "stick-pull" / folder
+        path.mkdir(parents=True)
+        cfg = {"task": "stick-pull", "policy": "fm", "seed": seed, "eval_episodes": 4, "world_model": {}}
+        methods = {"base policy": base, "DALI-R": dalir, "DALI-R argmax": base, "random candidate": base}
+        success = {m: {"success_rate": sum(s) / 4, "selection": "margin(ensemble, k=1, margin=1)", "records": [{"success": x} for x in s]}
+                   for m, s in methods.items()}
+        (path / "results.json").write_text(json.dumps({"config": cfg, "success": success}))
+
+    no, yes = [False] * 4, [True] * 4
+    run("fm_seed0", 0, no, no)  # the paper's world model
+    run("fm_seed0_frozen+explore_fm_seed0", 0, no, [True, False, False, False])
+    run("fm_seed1_frozen+explore_fm_seed1", 1, no, yes)
+    script = Path(__file__).resolve().parents[1] / "examples" / "summarize_results.py"
+    monkeypatch.setattr(sys, "argv", ["x", f"out={tmp_path}", "variant=frozen+explore"])
+    runpy.run_path(str(script), run_name="__main__")
+    rows = {(r["variant"], tuple(r["seeds"])): r for r in json.loads((tmp_path / "summary.json").read_text())}
+    assert sorted(rows) == [("frozen+explore", (0, 1)), ("paper", (0,))]
+    assert (rows["frozen+explore", (0, 1)]["base_only"], rows["frozen+explore", (0, 1)]["dalir_only"]) == (0, 5)
+    trusted = json.loads((tmp_path / "trusted_selection.json").read_text())
+    assert trusted["variant"] == "frozen+explore" and trusted["tasks"]["stick-pull"]["seeds"] == 2
+    assert trusted["tasks"]["stick-pull"]["default"] == 62.5 and trusted["mean_gain"] == 62.5

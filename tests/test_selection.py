@@ -147,10 +147,10 @@ def test_calibration_reads_only_validation_episodes_and_stores_its_choice(traine
     grid = (SelectionConfig("margin", "ensemble", k=1.0, margin=1.0), SelectionConfig("margin", "ensemble", k=1.0, margin=0.02),
             SelectionConfig("margin", "ensemble", k=1.0, margin=0.0), SelectionConfig("argmax", "state"))
     record = calibration.calibrate(policy_path, path, grid=grid, episodes=10, seed=1, write=False)
-    assert record["chosen"] == "argmax(state)"  # the best entry of the grid
+    assert record["chosen"] == "argmax(state)"  # the best entry of the grid: 5 episodes won, none lost (p = 0.03)
     assert load_world_model(path).selection == SelectionConfig() and load_world_model(path).calibration is None  # write=False
     seeds.clear()
-    record = calibration.calibrate(policy_path, path, grid=grid, rule="margin", episodes=10, seed=1)
+    record = calibration.calibrate(policy_path, path, grid=grid, rule="margin", episodes=10, seed=1, alpha=1.0)
     assert set(seeds) == {1} and len(seeds) == 1 + len(grid)
     # the best margin setting, the first of two equals; argmax(state) scored more but is not of the rule
     assert record["chosen"] == "margin(ensemble, k=1, margin=0.02)"
@@ -159,6 +159,25 @@ def test_calibration_reads_only_validation_episodes_and_stores_its_choice(traine
     assert parts.selection == grid[1] and parts.calibration["chosen"] == record["chosen"]
     assert RerankingActor.from_checkpoints(policy_path, path).selection == grid[1]  # the checkpoint names the default
     assert RerankingActor.from_checkpoints(policy_path, path, selection=SelectionConfig()).selection == SelectionConfig()
+    # with the default evidence rule, 2 episodes won and none lost (one-sided p = 0.25) do not leave the base policy
+    record = calibration.calibrate(policy_path, path, grid=grid, rule="margin", episodes=10, seed=1, write=False)
+    assert record["chosen"] == "margin(ensemble, k=1, margin=1)" and record["alpha"] == calibration.ALPHA
+    with pytest.raises(ValueError, match="alpha is a p-value threshold"):
+        calibration.calibrate(policy_path, path, alpha=0.0)
+
+
+def test_calibration_leaves_the_base_policy_only_with_evidence():
+    def entry(name, rate, base_only, dalir_only, rule="margin"):
+        return {"name": name, "selection": {"rule": rule}, "success_rate": rate, "vs_base": {"base_only": base_only, "dalir_only": dalir_only}}
+
+    entries = [entry("m1", 0.5, 0, 0), entry("m0.02", 0.6, 0, 3), entry("m0", 0.65, 1, 6), entry("argmax", 0.7, 2, 8, rule="argmax")]
+    # one-sided p: 3 / 0 -> 0.125, 6 / 1 -> 0.0625, 8 / 2 -> 0.0547
+    assert calibration.choose(entries)["name"] == "argmax"
+    assert calibration.choose(entries, rule="margin")["name"] == "m0"
+    assert calibration.choose(entries, alpha=0.06)["name"] == "argmax" and calibration.choose(entries, rule="margin", alpha=0.06)["name"] == "m1"
+    assert calibration.choose(entries, rule="margin", alpha=1.0)["name"] == "m0"
+    assert calibration.choose([entry("m1", 0.5, 0, 0), entry("m0", 0.5, 0, 4)], alpha=1.0)["name"] == "m1"  # ties: the first
+    assert calibration.choose([entry("m1", 0.5, 0, 0), entry("m0", 0.3, 6, 0)])["name"] == "m1"
 
 
 def test_a_checkpoint_without_an_ensemble_keeps_the_paper_rule_and_refuses_ensemble_rules(trained_world_model, tmp_path):

@@ -14,7 +14,7 @@ from torchrl_dalir.config import check_choice
 from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
 from torchrl_dalir.data.config import CollectionConfig
 from torchrl_dalir.envs.tasks import get_task
-from torchrl_dalir.evaluation.calibration import GRIDS
+from torchrl_dalir.evaluation.calibration import ALPHA, GRIDS
 from torchrl_dalir.evaluation.compare import METHODS
 from torchrl_dalir.modules.config import POLICY_KINDS
 from torchrl_dalir.training.policy import PRESETS as POLICY_PRESETS
@@ -42,6 +42,8 @@ class PipelineConfig:
     calibration_episodes, calibration_seed: the validation episodes on which the selection
         rule's setting is chosen (:mod:`torchrl_dalir.evaluation.calibration`); never the test seed.
         ``calibration_episodes=0`` keeps the paper's arg-max.
+    calibration_alpha: the evidence a setting needs to be chosen over the base policy (one-sided
+        sign-test p-value on the validation episodes; 1: the setting with the most successes).
     num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability.
     redo: stages to run again from scratch even if their artifact exists
         (``redo=[world_model]``); later stages are redone too, and each previous run's
@@ -63,6 +65,7 @@ class PipelineConfig:
     eval_methods: list[str] = field(default_factory=lambda: ["base", "dalir", "argmax", "random"])
     calibration_episodes: int = 30
     calibration_seed: int = 1
+    calibration_alpha: float = ALPHA
     calibration_grid: str = "all"  # all (the margin settings and the other rules) | margin (the margin settings only)
     num_candidates: int = 32
     dropout: float = 0.2
@@ -78,6 +81,8 @@ class PipelineConfig:
         for method in self.eval_methods:
             check_choice("eval_methods entry", method, METHODS)
         check_choice("calibration_grid", self.calibration_grid, GRIDS)
+        if not 0 < self.calibration_alpha <= 1:
+            raise ValueError(f"calibration_alpha is a p-value threshold in (0, 1], got {self.calibration_alpha}")
         if self.calibration_seed == self.eval_seed:
             raise ValueError(f"calibration_seed must differ from eval_seed ({self.eval_seed}): the rule is chosen on validation, not test, episodes")
         check_choice("until", self.until, STAGES)

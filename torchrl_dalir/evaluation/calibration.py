@@ -3,12 +3,14 @@
 Every setting of a rule (the margin, the pessimism ``k``, the temperature) is chosen on
 *validation* episodes, which have their own evaluation seed, and never on the test episodes
 that results report. The base policy and every rule of the grid run on the same validation
-episodes; the winner is the entry with the most successes (among those of ``rule`` if one is
-named), ties going to the entry listed first. The grids list the most conservative setting first,
-``margin=1``, which always executes the clean candidate (with common noise, the default, the
-base policy's own chunk: the base policy's episodes exactly), so another setting must solve more
-validation episodes than it to be chosen. With 30 validation episodes the best of five settings is partly luck: the test episodes
-say what it is worth. The choice is written into the world-model checkpoint, so
+episodes. The grids list the most conservative setting first, ``margin=1``, which always
+executes the clean candidate (with common noise, the default, the base policy's own chunk: the
+base policy's episodes exactly). Another entry is eligible only with evidence that it beats the
+base policy on these episodes (a one-sided sign test on the paired episodes, p <= ``alpha``), and
+the winner is the eligible entry with the most successes (among those of ``rule`` if one is
+named), ties going to the entry listed first. Without the evidence rule (``alpha=1``) the best of
+nine settings on 30 episodes is largely luck; with it, DALI-R stays the base policy unless the
+scorer's choices helped visibly. The choice is written into the world-model checkpoint, so
 :meth:`RerankingActor.from_checkpoints` uses it with no argument.
 """
 
@@ -16,12 +18,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints, paired_sign_test
+from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints, p_better, paired_sign_test
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training.loop import load_checkpoint, save_checkpoint
 
 TEST_SEED = 0  # the evaluation seed of the episodes that results report
 VALIDATION_SEED = 1
+# The evidence an entry needs to be chosen over the most conservative one: the one-sided sign-test
+# p-value of "it solves more validation episodes than the base policy" (0.1 on 30 episodes: e.g.
+# 4 episodes won and none lost, or 7 won and 1 lost). Fixed before the test episodes were run.
+ALPHA = 0.1
 
 # The default rule's settings, most conservative first: margin 1 never leaves the clean
 # candidate (probabilities differ by less than 1), i.e. it is the base policy.
@@ -46,17 +52,21 @@ def calibrate(
     seed: int = VALIDATION_SEED,
     test_seed: int = TEST_SEED,
     write: bool = True,
+    alpha: float = ALPHA,
     **evaluate_kwargs,
 ) -> dict:
     """Evaluates the base policy and every entry of ``grid`` on ``episodes`` validation episodes
-    of evaluation seed ``seed``, picks the best entry (of those whose rule is ``rule``, if given) and, if ``write``,
+    of evaluation seed ``seed``, picks an entry with :func:`choose` and, if ``write``,
     stores it in the world-model checkpoint (``selection``, with the whole record under
     ``calibration``). Returns that record: per entry its name, settings, success rate, the
     paired comparison with the base policy, and the chosen entry.
 
     Raises ``ValueError`` for the test seed ``test_seed``, for a ``rule`` that no grid entry
-    has, and for ensemble rules on a world model without a scorer ensemble, before any episode.
+    has, for ``alpha`` outside (0, 1], and for ensemble rules on a world model without a scorer
+    ensemble, before any episode.
     """
+    if not 0 < alpha <= 1:
+        raise ValueError(f"alpha is a p-value threshold in (0, 1], got {alpha}")
     if seed == test_seed:
         raise ValueError(f"calibration must not read the test episodes (evaluation seed {test_seed}); use another seed")
     if rule is not None and not any(entry.rule == rule for entry in grid):
@@ -73,13 +83,22 @@ def calibrate(
         successes = [r["success"] for r in row["records"]]
         entries.append({"name": entry.name, "selection": entry.to_dict(), "success_rate": row["success_rate"],
                         "vs_base": paired_sign_test(base_successes, successes), "seconds": row["seconds"]})
-    family = [e for e in entries if rule is None or e["selection"]["rule"] == rule]
-    chosen = max(family, key=lambda e: e["success_rate"])  # max keeps the first of equals
-    record = {"episodes": episodes, "seed": seed, "rule": rule, "base_success_rate": base["success_rate"],
+    chosen = choose(entries, rule, alpha)
+    record = {"episodes": episodes, "seed": seed, "rule": rule, "alpha": alpha, "base_success_rate": base["success_rate"],
               "entries": entries, "chosen": chosen["name"], "selection": chosen["selection"]}
     if write:
         store_selection(world_model_path, SelectionConfig(**chosen["selection"]), record)
     return record
+
+
+def choose(entries: list[dict], rule: str | None = None, alpha: float = ALPHA) -> dict:
+    """The calibrated entry among ``entries`` (as :func:`calibrate` records them, most
+    conservative first), restricted to those of ``rule`` if given: the most successes among the
+    first entry and the entries that beat the base policy with a one-sided sign-test p-value of at
+    most ``alpha``; ties go to the entry listed first (``alpha=1``: simply the most successes)."""
+    family = [e for e in entries if rule is None or e["selection"]["rule"] == rule]
+    eligible = [e for i, e in enumerate(family) if i == 0 or p_better(e["vs_base"]["base_only"], e["vs_base"]["dalir_only"]) <= alpha]
+    return max(eligible, key=lambda e: e["success_rate"])  # max keeps the first of equals
 
 
 def store_selection(world_model_path: str | Path, selection: SelectionConfig, calibration: dict | None = None) -> None:

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import math
 import time
 from functools import partial
 from pathlib import Path
 
 import torch
+from scipy.stats import binomtest
 from tensordict import TensorDictBase
 
 from torchrl_dalir.evaluation.success_rate import evaluate
@@ -107,9 +107,16 @@ def paired_sign_test(base: list[bool], dalir: list[bool]) -> dict:
         raise ValueError(f"paired results need the same episodes: {len(base)} vs {len(dalir)}")
     base_only = sum(b and not d for b, d in zip(base, dalir))
     dalir_only = sum(d and not b for b, d in zip(base, dalir))
-    n, k = base_only + dalir_only, min(base_only, dalir_only)
-    p = min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n) if n else 1.0
+    n = base_only + dalir_only
+    p = float(binomtest(dalir_only, n).pvalue) if n else 1.0
     return {"base_only": base_only, "dalir_only": dalir_only, "p_value": p}
+
+
+def p_better(base_only: int, dalir_only: int) -> float:
+    """The one-sided sign-test p-value of "DALI-R solves more of the paired episodes than the
+    base policy", from the discordant counts of :func:`paired_sign_test` (1 without any)."""
+    n = base_only + dalir_only
+    return float(binomtest(dalir_only, n, alternative="greater").pvalue) if n else 1.0
 
 
 def decision_summary(rollout: TensorDictBase, action_steps: int) -> dict:
