@@ -20,7 +20,9 @@ from pathlib import Path
 
 from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.evaluation.calibration import ALPHA, GRIDS, TEST_SEED, VALIDATION_SEED, calibrate
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.evaluation.compare import check_evaluation_settings
+from torchrl_dalir.seeds import check_eval_seed
+from torchrl_dalir.utils import atomic_write_text, writable_dir
 
 
 @dataclass
@@ -41,10 +43,15 @@ class Config:
     common_noise: bool = True  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
     out: str | None = None  # default: next to the world model
 
+    def __post_init__(self):
+        check_evaluation_settings(self.episodes, self.seed, self.num_candidates, self.dropout)
+        check_eval_seed(self.test_seed, "test_seed")
+
 
 def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
     check_choice("grid", cfg.grid, GRIDS)
+    out = writable_dir(cfg.out if cfg.out else Path(cfg.world_model).parent)  # now, not after the episodes
     record = calibrate(
         cfg.policy, cfg.world_model, grid=GRIDS[cfg.grid], rule=cfg.rule, alpha=cfg.alpha, episodes=cfg.episodes, seed=cfg.seed, test_seed=cfg.test_seed, write=cfg.write,
         device=cfg.device, num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed,
@@ -55,7 +62,6 @@ def main(argv: list[str]) -> None:
         test = entry["vs_base"]
         print(f"{entry['name']:48s} {entry['success_rate']:7.1%}   only base / only rule {test['base_only']:2d} / {test['dalir_only']:2d}")
     print(f"chosen: {record['chosen']}" + (f" (written to {cfg.world_model})" if cfg.write else ""))
-    out = Path(cfg.out) if cfg.out else Path(cfg.world_model).parent
     atomic_write_text(out / "calibration.json", json.dumps({"config": config_dict(cfg), **record}, indent=1))
 
 

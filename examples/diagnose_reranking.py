@@ -18,17 +18,17 @@ from __future__ import annotations
 import json
 import sys
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
 from torchrl_dalir import RerankingActor
-from torchrl_dalir.config import config_dict, parse_config
+from torchrl_dalir.config import check_at_least, config_dict, parse_config
 from torchrl_dalir.evaluation.candidate_outcomes import candidate_outcomes, summarize_candidate_outcomes
+from torchrl_dalir.evaluation.compare import check_evaluation_settings
 from torchrl_dalir.evaluation.plots import plot_candidate_outcomes
 from torchrl_dalir.reranking import PointDropout
 from torchrl_dalir.reranking.selection import SelectionConfig
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write_text, writable_dir
 
 
 @dataclass
@@ -46,9 +46,15 @@ class Config:
     device: str = "cpu"
     out: str = "outputs/candidate_outcomes"
 
+    def __post_init__(self):
+        check_evaluation_settings(self.episodes, self.seed, self.num_candidates, self.dropout)
+        check_at_least("decisions", self.decisions, 1)
+        check_at_least("stride", self.stride, 1)
+
 
 def main(argv: list[str]) -> dict:
     cfg: Config = parse_config(Config, argv)
+    out = writable_dir(cfg.out)  # now, not after the episodes
     torch.manual_seed(cfg.actor_seed)
     actor = RerankingActor.from_checkpoints(
         cfg.policy, cfg.world_model, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.actor_seed,
@@ -61,7 +67,6 @@ def main(argv: list[str]) -> dict:
     summary = summarize_candidate_outcomes(records)
     for key, value in summary.items():
         print(f"{key:28s} {value:.4g}" if isinstance(value, float) else f"{key:28s} {value}")
-    out = Path(cfg.out)
     atomic_write_text(out / "candidate_outcomes.json", json.dumps({"config": config_dict(cfg), "summary": summary, "records": records}, indent=1))
     plot_candidate_outcomes(records, out / "candidate_outcomes.png", title=f"{task}: DALI-R's candidates, imagined vs real")
     return summary

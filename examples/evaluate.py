@@ -17,12 +17,11 @@ import io
 import json
 import sys
 from dataclasses import dataclass
-from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
-from torchrl_dalir.evaluation.compare import evaluate_checkpoints
+from torchrl_dalir.evaluation.compare import check_evaluation_settings, evaluate_checkpoints
 from torchrl_dalir.reranking.selection import SelectionConfig
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write_text, writable_dir
 
 
 @dataclass
@@ -40,9 +39,13 @@ class Config:
     common_noise: bool = True  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
     out: str = "outputs/evaluation"
 
+    def __post_init__(self):
+        check_evaluation_settings(self.episodes, self.seed, self.num_candidates, self.dropout)
+
 
 def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
+    out = writable_dir(cfg.out)  # now, not after the episodes
     rows = evaluate_checkpoints(
         cfg.policy, cfg.world_model, episodes=cfg.episodes, seed=cfg.seed, device=cfg.device,
         num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed, methods=cfg.methods,
@@ -51,7 +54,6 @@ def main(argv: list[str]) -> None:
     print(f"\n{'method':16s} {'success':>8s} {'episodes':>9s} {'seconds':>8s}")
     for name, row in rows.items():
         print(f"{name:16s} {row['success_rate']:8.1%} {row['episodes']:9d} {row['seconds']:8.1f}")
-    out = Path(cfg.out)
     atomic_write_text(out / "evaluation.json", json.dumps({"config": config_dict(cfg), "success": rows}, indent=1))
     table = io.StringIO()
     details = sorted({key for row in rows.values() for record in row["records"] for key in record["details"]})

@@ -15,17 +15,23 @@ import sys
 import time
 from dataclasses import dataclass
 
-from torchrl_dalir.config import parse_config
+from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.evaluation import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
+from torchrl_dalir.seeds import check_eval_seed
 from torchrl_dalir.training import POLICY_PRESETS, PolicyTrainingConfig, load_policy, train_policy
 from torchrl_dalir.utils import atomic_write_text
 
 
 @dataclass
 class Config(PolicyTrainingConfig):
-    eval_episodes: int = 0
+    eval_episodes: int = 0  # 0: no evaluation
     eval_seed: int = 0
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_at_least("eval_episodes", self.eval_episodes, 0)
+        check_eval_seed(self.eval_seed, "eval_seed")
 
 
 def main(argv: list[str]) -> None:

@@ -8,7 +8,8 @@ from tensordict import TensorDict
 from torchrl_dalir import RerankingActor, keys
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.objectives import LatentDynamicsLoss, TaskCompletionLoss
-from torchrl_dalir.training import load_world_model, train_world_model
+from torchrl_dalir.training import load_policy, load_world_model, train_world_model
+from torchrl_dalir.utils import weights_digest
 
 
 def _train(loss_module, params, steps=80, lr=3e-3):
@@ -106,14 +107,15 @@ def test_world_model_checkpoint_and_metrics(trained_world_model, collected, monk
     assert train_world_model(cfg) == path
 
 
-def test_reranking_actor_from_checkpoints(trained_world_model):
+def test_reranking_actor_from_checkpoints(trained_world_model, tmp_path):
     _, wm_path, policy_path = trained_world_model
     actor = RerankingActor.from_checkpoints(policy_path, wm_path, num_candidates=3)
+    assert load_world_model(wm_path).policy_digest == weights_digest(load_policy(policy_path))  # checked on every pairing
     obs = TensorDict({keys.POINT_CLOUD: torch.rand(2, 2, 64, 3), keys.AGENT_POS: torch.rand(2, 2, 4)}, [2])
     assert actor(obs)[keys.ACTION_CHUNK].shape == (2, 16, 4)
     state = torch.load(wm_path, weights_only=False)
     state["task"] = "disassemble"
-    other = wm_path.with_name("other_task.pt")
+    other = tmp_path / "other_task.pt"  # not next to the fixture's checkpoints, which other tests list
     torch.save(state, other)
     with pytest.raises(ValueError, match="for task 'disassemble'"):
         RerankingActor.from_checkpoints(policy_path, other)

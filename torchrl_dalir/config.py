@@ -48,5 +48,17 @@ def check_choice(name: str, value, choices: Collection) -> None:
         raise ValueError(f"{name} must be one of {sorted(choices)}, got {value!r}")
 
 
+def check_at_least(name: str, value, minimum) -> None:
+    """A ``ValueError`` that names the setting unless ``value >= minimum`` (counts, sizes, steps)."""
+    if value < minimum:
+        raise ValueError(f"{name} must be at least {minimum}, got {value}")
+
+
+def check_probability(name: str, value: float) -> None:
+    """A ``ValueError`` that names the setting unless ``0 <= value < 1`` (a dropout probability)."""
+    if not 0.0 <= value < 1.0:
+        raise ValueError(f"{name} must lie in [0, 1), got {value}")
+
+
 def config_dict(config) -> dict:
     return OmegaConf.to_container(OmegaConf.structured(config))

@@ -10,13 +10,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from torchrl_dalir.config import check_choice
+from torchrl_dalir.config import check_at_least, check_choice
 from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
 from torchrl_dalir.data.config import CollectionConfig
 from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.evaluation.calibration import ALPHA, GRIDS
-from torchrl_dalir.evaluation.compare import METHODS
+from torchrl_dalir.evaluation.compare import METHODS, check_evaluation_settings
 from torchrl_dalir.modules.config import POLICY_KINDS
+from torchrl_dalir.seeds import check_eval_seed
 from torchrl_dalir.training.policy import PRESETS as POLICY_PRESETS
 from torchrl_dalir.training.policy import PolicyTrainingConfig
 from torchrl_dalir.training.world_model import PRESETS as WORLD_MODEL_PRESETS
@@ -83,6 +84,10 @@ class PipelineConfig:
         check_choice("calibration_grid", self.calibration_grid, GRIDS)
         if not 0 < self.calibration_alpha <= 1:
             raise ValueError(f"calibration_alpha is a p-value threshold in (0, 1], got {self.calibration_alpha}")
+        check_evaluation_settings(self.eval_episodes, self.eval_seed, self.num_candidates, self.dropout, prefix="eval_")
+        check_eval_seed(self.calibration_seed, "calibration_seed")
+        for name in ("calibration_episodes", "base_policy_rollouts", "exploration_rollouts", "seed", "demo_seed"):
+            check_at_least(name, getattr(self, name), 0)
         if self.calibration_seed == self.eval_seed:
             raise ValueError(f"calibration_seed must differ from eval_seed ({self.eval_seed}): the rule is chosen on validation, not test, episodes")
         check_choice("until", self.until, STAGES)

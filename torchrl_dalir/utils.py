@@ -1,7 +1,8 @@
-"""Small shared helpers: atomic file writes, safe loading of torch files."""
+"""Small shared helpers: atomic file writes, safe loading of torch files, digests of weights."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 import pickle
 import re
@@ -27,6 +28,21 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         raise
 
 
+def writable_dir(path: str | Path, setting: str = "out") -> Path:
+    """Creates the folder ``path`` (and its parents) and checks that files can be written in it,
+    before a job spends time on results it could not save; a ``ValueError`` names the folder and
+    the ``setting`` to change otherwise."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as error:
+        raise ValueError(f"cannot write results to the folder {path} ({error.strerror or error}): "
+                         f"pass {setting}=<a folder you can write to>") from None
+    return path
+
+
 class UnsafeFileError(ValueError):
     """A torch file holds a pickled object other than tensors and plain values: loading it could run code."""
 
@@ -39,8 +55,10 @@ def safe_torch_load(path: str | Path, what: str = "torch file"):
     path = Path(path)
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
-    except OSError:  # missing file, a directory, ...: the message already names the path
-        raise
+    except OSError as error:
+        if error.filename is not None:  # missing file, a directory, ...: the message already names the path
+            raise
+        cause = error  # the zip reader's "Invalid argument" for a truncated archive
     except pickle.UnpicklingError as error:  # a refused object, or no pickle at all (a JSON file, ...)
         cause = error.__context__ or error  # the inner error: torch's own message suggests weights_only=False
         refused = re.search(r"GLOBAL (\S+)", str(cause))
@@ -53,3 +71,14 @@ def safe_torch_load(path: str | Path, what: str = "torch file"):
     except Exception as error:  # a truncated zip archive, an empty file, ...
         cause = error
     raise ValueError(f"{path} is not a {what}, or is truncated: {str(cause) or type(cause).__name__}") from cause
+
+
+def weights_digest(module: torch.nn.Module) -> str:
+    """A SHA-256 hex digest of a module's state dict (every entry's name, dtype, shape and bytes, in
+    key order): equal for the same weights, loaded anywhere, and different for any other weights."""
+    digest = hashlib.sha256()
+    for name, value in module.state_dict().items():
+        value = value.detach().cpu().contiguous()
+        digest.update(f"{name}:{value.dtype}:{tuple(value.shape)};".encode())
+        digest.update(value.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()

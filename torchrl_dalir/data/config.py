@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from torchrl_dalir.config import check_choice
+from torchrl_dalir.config import check_at_least, check_choice
 from torchrl_dalir.data.collection import Source
 from torchrl_dalir.envs.tasks import get_task
 
@@ -38,6 +38,9 @@ class CollectionConfig:
     def __post_init__(self):
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("stage", self.stage, ("demos", "mixed", "all"))
+        for name, minimum in (("chunk_size", 1), ("num_points", 1), ("num_workers", 1), ("num_demos", 1), ("num_mixed", 0), ("seed", 0)):
+            check_at_least(name, getattr(self, name), minimum)
+        check_at_least("the number of noise_scales", len(self.noise_scales), 1)
 
     def task_dir(self) -> Path:
         return Path(self.out) / self.task

@@ -7,6 +7,7 @@ the success flag's type, the early termination at the first success, and the dep
 from __future__ import annotations
 
 import copy
+import warnings
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -73,6 +74,23 @@ def _time_limit(env: gym.Env) -> gym.wrappers.TimeLimit | None:
     return None
 
 
+_WARNED_REPEATS: set[tuple[str, int]] = set()  # (task, num_points) already warned about in this process
+
+
+def _warn_if_points_repeat(task: TaskSpec, num_points: int, available: int) -> None:
+    """Warns, once per task and cloud size in a process, when the crop box holds fewer distinct
+    points than a cloud has rows (farthest-point sampling then repeats points)."""
+    if available >= num_points or (task.name, num_points) in _WARNED_REPEATS:
+        return
+    _WARNED_REPEATS.add((task.name, num_points))
+    warnings.warn(
+        f"{task.name}: the crop box holds {available} distinct points at the first observation, fewer than "
+        f"num_points={num_points}, so each cloud repeats points to fill {num_points} rows. For distinct points only, "
+        f"pass make_env(..., num_points={available}) or fewer (a max-pooled encoder sees the same set either way)",
+        stacklevel=2,
+    )
+
+
 class PointCloudObservation(gym.Wrapper):
     """Replaces the observation by ``point_cloud``, ``agent_pos`` and ``privileged_state``.
 
@@ -104,12 +122,15 @@ class PointCloudObservation(gym.Wrapper):
             keys.PRIVILEGED_STATE: np.asarray(self.task.privileged_state(raw, state), dtype=np.float32),
         }
         if self.render_points:
-            if self._camera is None:
+            first = self._camera is None
+            if first:
                 t = self.task
                 self._camera = DepthPointCloudCamera(
                     raw.model, t.camera, t.crop_low, t.crop_high, self.num_points, t.image_size
                 )
             observation[keys.POINT_CLOUD] = self._camera(raw.data)
+            if first:
+                _warn_if_points_repeat(self.task, self.num_points, self._camera.points_in_crop)
         return observation
 
     def reset(self, *, seed=None, options=None):
@@ -117,6 +138,8 @@ class PointCloudObservation(gym.Wrapper):
         return self._observation(state), {keys.SUCCESS: np.zeros(1, dtype=bool)}
 
     def step(self, action):
+        if not np.isfinite(action).all():  # MuJoCo would reset the simulation and the episode would go on
+            raise ValueError(f"the action {np.asarray(action).tolist()} holds NaN or infinite values: check what the policy outputs")
         state, reward, terminated, truncated, info = self.env.step(action)
         success = bool(info.get("success", False))
         info = {keys.SUCCESS: np.array([success])}

@@ -9,6 +9,7 @@ from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.gym_like import default_info_dict_reader
 
 from torchrl_dalir import keys
+from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 
@@ -37,7 +38,9 @@ def make_env(
             worker the same seed, hence the same episode (TorchRL passes reset keywords to each
             worker); seed the workers apart with ``env.set_seed(s)`` or
             ``env.reset(list_of_kwargs=[{"seed": s + i} for i in range(env.num_workers)])``.
-        num_points: points per cloud after farthest-point sampling.
+        num_points: points per cloud after farthest-point sampling. If the task's crop box holds
+            fewer pixels of the depth image than that, points repeat (a warning at the first
+            observation says how many are distinct).
         render: ``False`` gives a state-only env without ``point_cloud`` (for experts; ~10x faster).
         history: with ``history > 1``, ``point_cloud`` and ``agent_pos`` carry the last
             ``history`` observations (``[history, N, 3]``, ``[history, D]``), stacked by TorchRL's
@@ -51,6 +54,8 @@ def make_env(
         >>> rollout["point_cloud"].shape
         torch.Size([5, 512, 3])
     """
+    check_at_least("num_points", num_points, 1)
+    check_at_least("history", history, 1)
     spec = get_task(task)
     env = GymWrapper(PointCloudObservation(make_simulator(spec), spec, num_points, render), device=device)
     success_spec = Composite({keys.SUCCESS: Categorical(2, shape=(1,), dtype=torch.bool, device=device)})

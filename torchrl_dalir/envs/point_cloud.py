@@ -77,6 +77,7 @@ class DepthPointCloudCamera:
         self.crop_low = np.asarray(crop_low, dtype=np.float32)
         self.crop_high = np.asarray(crop_high, dtype=np.float32)
         self.num_points = num_points
+        self.points_in_crop: int | None = None  # set by each rendering
         try:
             _apply_requested_gl_backend()
             self.renderer = mujoco.Renderer(model, image_size, image_size)
@@ -107,6 +108,7 @@ class DepthPointCloudCamera:
         points = points_cam @ rotation.T + data.cam_xpos[self.cam_id]
         points = points.astype(np.float32)
         inside = np.all((points >= self.crop_low) & (points <= self.crop_high), axis=1)
+        self.points_in_crop = int(inside.sum())  # the distinct points available (one per pixel)
         return farthest_point_sample(points[inside], self.num_points)
 
 

@@ -10,14 +10,27 @@ import torch
 from scipy.stats import binomtest
 from tensordict import TensorDictBase
 
+from torchrl_dalir.config import check_at_least, check_probability
 from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.reranking import PointDropout, RandomCandidateActor, RerankingActor
 from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
 from torchrl_dalir.reranking.selection import SelectionConfig
+from torchrl_dalir.seeds import check_eval_seed
 
 BASE, DALIR, ARGMAX, RANDOM = "base policy", "DALI-R", "DALI-R argmax", "random candidate"
 METHODS = {"base": BASE, "dalir": DALIR, "argmax": ARGMAX, "random": RANDOM}  # short names for command lines
+
+
+def check_evaluation_settings(episodes: int, seed: int, num_candidates: int = 1, dropout: float = 0.0, *, prefix: str = "") -> None:
+    """Refuses evaluation settings before any episode runs: fewer than one episode, a negative
+    evaluation seed (:func:`~torchrl_dalir.seeds.check_eval_seed`), fewer than one candidate, a
+    dropout probability outside ``[0, 1)``. ``prefix`` names the settings as a job spells them
+    (``eval_`` for ``eval_episodes``, ``eval_seed``)."""
+    check_at_least(f"{prefix}episodes", episodes, 1)
+    check_eval_seed(seed, f"{prefix}seed")
+    check_at_least("num_candidates", num_candidates, 1)
+    check_probability("dropout", dropout)
 
 
 def evaluate_checkpoints(
@@ -50,7 +63,9 @@ def evaluate_checkpoints(
     """
     from torchrl_dalir.training.loop import load_checkpoint
     from torchrl_dalir.training.policy import load_policy
+    from torchrl_dalir.training.world_model import WORLD_MODEL_ENTRIES, check_trained_on
 
+    check_evaluation_settings(episodes, seed, num_candidates, dropout)
     methods = methods if methods is not None else ["base"] + (["dalir"] if world_model_path is not None else [])
     unknown = set(methods) - set(METHODS)
     if unknown:
@@ -59,7 +74,9 @@ def evaluate_checkpoints(
         raise ValueError(f"methods {methods} rerank candidates: they need a world_model_path")
     policy = load_policy(policy_path, device)
     if world_model_path is not None:  # fails now, not after the base policy's episodes
-        stored = SelectionConfig.stored_in(load_checkpoint(world_model_path, "world_model"))
+        state = load_checkpoint(world_model_path, "world_model", WORLD_MODEL_ENTRIES)
+        check_trained_on(state, policy, world_model_path)
+        stored = SelectionConfig.stored_in(state)
     reranking = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
     rules = {"dalir": {"selection": selection} if selection is not None else {}, "argmax": {"selection": SelectionConfig()}, "random": {}}
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}

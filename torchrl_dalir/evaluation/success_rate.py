@@ -12,8 +12,9 @@ from torchrl.envs import SerialEnv
 from tqdm.auto import tqdm
 
 from torchrl_dalir import keys
+from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs import get_task, make_env
-from torchrl_dalir.seeds import eval_episode_seed
+from torchrl_dalir.seeds import check_eval_seed, eval_episode_seed
 
 
 @dataclass
@@ -67,6 +68,8 @@ def evaluate(
         describe: computes extra per-episode values from the episode's rollout, kept in the
             record's ``details`` (e.g. :func:`torchrl_dalir.evaluation.compare.decision_summary`).
     """
+    check_at_least("num_episodes", num_episodes, 1)
+    check_eval_seed(seed)
     env = env if env is not None else SerialEnv(1, partial(make_env, task, seed=None, **env_kwargs))
     max_steps = get_task(task).max_steps
     records = []

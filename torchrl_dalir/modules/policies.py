@@ -21,6 +21,35 @@ from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 from torchrl_dalir.modules.unet import ConditionalUnet1D
 
+# A point further outside the policy's training clouds than this, in units of their extent (min-max
+# normalised to [-1, 1]), is refused: a cloud in millimetres instead of metres lands near 1000, and
+# far larger finite values overflow the network into NaN actions. (The robot state is not checked:
+# a dimension that barely moved in the demos normalises to large values for ordinary states.)
+MAX_NORMALIZED_MAGNITUDE = 100.0
+
+
+def _name(key: NestedKey) -> str:
+    return key if isinstance(key, str) else str(tuple(key))
+
+
+def check_values(value: torch.Tensor, key: NestedKey) -> None:
+    """Refuses an observation entry of a non-floating dtype or with NaN or infinite values, naming it."""
+    if not value.is_floating_point():
+        raise ValueError(f"{_name(key)} {tuple(value.shape)} is {value.dtype}: pass floating-point values (float32)")
+    if not torch.isfinite(value).all():
+        bad = int((~torch.isfinite(value)).sum())
+        raise ValueError(f"{_name(key)} {tuple(value.shape)} holds {bad} NaN or infinite values: check the observation's source")
+
+
+def check_point_cloud(cloud: torch.Tensor, key: NestedKey = keys.POINT_CLOUD) -> None:
+    """Refuses a cloud that is not ``[..., N, 3]`` with ``N >= 1`` finite floating-point points, naming
+    ``key`` and the shape (the policies, DALI-R's actor and :class:`PointDropout` share this check)."""
+    if cloud.dim() < 2 or cloud.shape[-1] != 3:
+        raise ValueError(f"{_name(key)} must be [..., N, 3] (xyz points), got {tuple(cloud.shape)}")
+    if cloud.shape[-2] == 0:
+        raise ValueError(f"{_name(key)} {tuple(cloud.shape)} holds no points: every cloud needs at least one")
+    check_values(cloud, key)
+
 
 class ChunkPolicy3D(TensorDictModuleBase):
     """Shared body: normalizers, observation encoders and the conditional U-Net.
@@ -48,6 +77,7 @@ class ChunkPolicy3D(TensorDictModuleBase):
         self.action_dim, self.state_dim = action_dim, state_dim
         self.task: str | None = None  # the task and cloud size it was trained on (set by ``load_policy``)
         self.num_points: int | None = None
+        self.checkpoint: str | None = None  # the file it was loaded from (set by ``load_policy``)
         self.point_normalizer = MinMaxNormalizer(3)
         self.state_normalizer = MinMaxNormalizer(state_dim)
         self.action_normalizer = MinMaxNormalizer(action_dim)
@@ -66,33 +96,53 @@ class ChunkPolicy3D(TensorDictModuleBase):
         self.action_normalizer.fit(action)
 
     # -- observation -> condition ------------------------------------------------------------
-    def check_observation(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> None:
+    def check_observation(
+        self, point_cloud: torch.Tensor, agent_pos: torch.Tensor, in_keys: Sequence[NestedKey] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Refuses an observation the policy cannot act on, naming the entry (``in_keys``, by default the
+        policy's) and its shape: a wrong shape, no points, non-numeric or non-finite values, or values far
+        outside the range the policy was trained on. Returns both in the policy's dtype: floating-point
+        observations of another precision (numpy's float64) are cast, integer or bool ones are refused."""
+        cloud_key, state_key = in_keys if in_keys is not None else self.in_keys
         to = self.config.obs_steps
         if point_cloud.dim() < 3 or point_cloud.shape[-3] != to or point_cloud.shape[-1] != 3:
             raise ValueError(
-                f"point_cloud must be [..., {to}, N, 3] (a {to}-step history; stack it with "
+                f"{_name(cloud_key)} must be [..., {to}, N, 3] (a {to}-step history; stack it with "
                 f"torchrl_dalir.envs.make_env(..., history={to})), got {tuple(point_cloud.shape)}"
             )
         if agent_pos.shape[-2:] != (to, self.state_dim):
             raise ValueError(
-                f"agent_pos must be [..., {to}, {self.state_dim}] (the policy's {self.state_dim}-D robot state, "
+                f"{_name(state_key)} must be [..., {to}, {self.state_dim}] (the policy's {self.state_dim}-D robot state, "
                 f"a {to}-step history), got {tuple(agent_pos.shape)}"
             )
-        if not (torch.isfinite(point_cloud).all() and torch.isfinite(agent_pos).all()):
-            raise ValueError("the observation contains NaN or infinite values")
+        if point_cloud.shape[:-3].numel() == 0:
+            raise ValueError(f"no observation to act on: {_name(cloud_key)} is {tuple(point_cloud.shape)}, an empty batch")
+        check_point_cloud(point_cloud, cloud_key)
+        check_values(agent_pos, state_key)
+        dtype = self.point_normalizer.low.dtype
+        point_cloud, agent_pos = point_cloud.to(dtype), agent_pos.to(dtype)
+        excess = self.point_normalizer(point_cloud).abs().max().item()
+        if excess > MAX_NORMALIZED_MAGNITUDE:
+            low, high = self.point_normalizer.low.tolist(), self.point_normalizer.high.tolist()
+            raise ValueError(
+                f"{_name(cloud_key)} {tuple(point_cloud.shape)} lies far outside the points the policy was trained on: up to "
+                f"{excess:.3g} where they span [-1, 1] after normalisation (xyz from {low} to {high}). Pass world-frame "
+                "coordinates in metres, as make_env gives them"
+            )
+        return point_cloud, agent_pos
 
     def read_observation(self, tensordict: TensorDictBase, in_keys: Sequence[NestedKey] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The point cloud and robot state an actor reads from ``tensordict`` (at ``in_keys``, by default the
-        policy's), refused unless they are what the policy acts on: a history of ``obs_steps`` frames for every
-        batch entry, and the cloud size it was trained on."""
-        cloud_key, state_key = in_keys if in_keys is not None else self.in_keys
-        cloud, agent_pos = tensordict.get(cloud_key), tensordict.get(state_key)
-        self.check_observation(cloud, agent_pos)
+        policy's), refused unless they are what the policy acts on (:meth:`check_observation`): a history of
+        ``obs_steps`` frames for every batch entry, and the cloud size it was trained on."""
+        in_keys = list(in_keys) if in_keys is not None else self.in_keys
+        cloud, agent_pos = tensordict.get(in_keys[0]), tensordict.get(in_keys[1])
+        cloud, agent_pos = self.check_observation(cloud, agent_pos, in_keys)
         to = self.config.obs_steps
         if cloud.dim() - 3 < tensordict.batch_dims:
             raise ValueError(
-                f"point_cloud is {tuple(cloud.shape)} in a tensordict of batch size {list(tensordict.batch_size)}: it must "
-                f"be [*batch, {to}, N, 3], a {to}-step history (torchrl_dalir.envs.make_env(..., history={to}))"
+                f"{_name(in_keys[0])} is {tuple(cloud.shape)} in a tensordict of batch size {list(tensordict.batch_size)}: it "
+                f"must be [*batch, {to}, N, 3], a {to}-step history (torchrl_dalir.envs.make_env(..., history={to}))"
             )
         if self.num_points is not None and cloud.shape[-2] != self.num_points:
             raise ValueError(
@@ -113,7 +163,7 @@ class ChunkPolicy3D(TensorDictModuleBase):
         return torch.cat([pooled, state], dim=-1).flatten(-2)
 
     def encode(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
-        self.check_observation(point_cloud, agent_pos)
+        point_cloud, agent_pos = self.check_observation(point_cloud, agent_pos)
         return self.condition(self.point_features(point_cloud), agent_pos, keep)
 
     # -- condition -> chunk --------------------------------------------------------------------

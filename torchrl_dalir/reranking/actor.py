@@ -10,6 +10,7 @@ from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_dalir import keys
+from torchrl_dalir.config import check_at_least
 from torchrl_dalir.modules.policies import ChunkPolicy3D
 from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
 from torchrl_dalir.reranking.candidates import PointDropout
@@ -74,8 +75,7 @@ class RerankingActor(TensorDictModuleBase):
     ):
         super().__init__()
         self.in_keys, self.out_keys = list(in_keys), list(out_keys)
-        if num_candidates < 1:
-            raise ValueError("num_candidates must be at least 1")
+        check_at_least("num_candidates", num_candidates, 1)
         if world_model.action_dim != policy.action_dim:
             raise ValueError(f"the world model takes {world_model.action_dim}-D actions; the policy outputs {policy.action_dim}-D")
         if world_model.action_steps != policy.config.action_steps:
@@ -106,7 +106,7 @@ class RerankingActor(TensorDictModuleBase):
     @classmethod
     def from_checkpoints(cls, policy_path: str | Path, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
         """Loads a policy and the world model trained on top of it; refuses a world model of
-        another task or another policy."""
+        another task or another policy (by the digest of the policy's weights that it records)."""
         from torchrl_dalir.training.policy import load_policy
 
         return cls.on_policy(load_policy(policy_path, device), world_model_path, device, **kwargs)
@@ -114,13 +114,12 @@ class RerankingActor(TensorDictModuleBase):
     @classmethod
     def on_policy(cls, policy: ChunkPolicy3D, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
         """Wraps an already loaded policy with the world model trained on top of it; refuses a
-        world model of another task. The selection rule is the checkpoint's unless
-        ``selection=`` is passed."""
+        world model of another task or another policy
+        (:func:`~torchrl_dalir.training.world_model.check_trained_on`). The selection rule is the
+        checkpoint's unless ``selection=`` is passed."""
         from torchrl_dalir.training.world_model import load_world_model
 
-        parts = load_world_model(world_model_path, device)
-        if parts.task != policy.task:
-            raise ValueError(f"the world model at {world_model_path} is for task {parts.task!r}; the policy is for {policy.task!r}")
+        parts = load_world_model(world_model_path, device, policy=policy)
         kwargs.setdefault("selection", parts.selection)
         return cls(policy, parts.encoder, parts.world_model, parts.scorer, ensemble=parts.ensemble, **kwargs)
 

@@ -11,6 +11,8 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_dalir import keys
+from torchrl_dalir.config import check_probability
+from torchrl_dalir.modules.policies import check_point_cloud
 
 
 class PointDropout(TensorDictModuleBase):
@@ -20,7 +22,8 @@ class PointDropout(TensorDictModuleBase):
     :meth:`conditions` computes the per-point features once and pools them once per candidate
     (the same result as re-encoding each dropped cloud, at a fraction of the cost). Called on a
     tensordict, it is an ordinary module/transform: dropped points are replaced by a kept point
-    of the same cloud, so the cloud keeps its shape and a max-pooled encoder sees the kept set.
+    of the same cloud, so the cloud keeps its shape and dtype and a max-pooled encoder sees the
+    kept set; a cloud with no points or with NaN or infinite values is refused.
 
     Args:
         p: the probability of dropping a point.
@@ -38,8 +41,7 @@ class PointDropout(TensorDictModuleBase):
 
     def __init__(self, p: float = 0.2, seed: int = 0):
         super().__init__()
-        if not 0.0 <= p < 1.0:
-            raise ValueError(f"dropout probability must lie in [0, 1), got {p}")
+        check_probability("dropout probability", p)
         self.p = p
         self.generator = torch.Generator().manual_seed(seed)
 
@@ -51,6 +53,7 @@ class PointDropout(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         cloud = tensordict.get(keys.POINT_CLOUD)
+        check_point_cloud(cloud, keys.POINT_CLOUD)
         keep = self.keep_masks(cloud.shape[:-1]).to(cloud.device)
         first_kept = keep.float().argmax(-1, keepdim=True)  # index of a kept point per cloud
         replacement = torch.gather(cloud, -2, first_kept.unsqueeze(-1).expand(*first_kept.shape, 3))

@@ -20,7 +20,8 @@ from torch.optim.swa_utils import AveragedModel
 from torchrl.objectives import LossModule
 from tqdm.auto import tqdm
 
-from torchrl_dalir.utils import safe_torch_load
+from torchrl_dalir.config import check_at_least
+from torchrl_dalir.utils import UnsafeFileError, safe_torch_load
 
 
 @dataclass
@@ -60,10 +61,34 @@ def save_checkpoint(path: str | Path, payload: dict) -> None:
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: str | Path, kind: str) -> dict:
-    """Loads a checkpoint written by this library and checks that it holds a ``kind`` model.
-    Refuses (:class:`~torchrl_dalir.utils.UnsafeFileError`) a file holding anything but tensors
-    and plain values, before looking at its kind."""
+# What a fit() checkpoint must hold to resume training.
+RESUME_ENTRIES = ("model", "ema", "optimizer", "schedule", "generator", "torch_rng", "step", "num_steps")
+
+
+def check_entries(state: dict, path: str | Path, entries, what: str) -> None:
+    """Refuses a loaded checkpoint that lacks any of ``entries``, naming the file and the entries
+    (instead of a bare ``KeyError`` later)."""
+    missing = [entry for entry in entries if entry not in state]
+    if missing:
+        raise ValueError(
+            f"{path} is a damaged or incomplete {what}: it has no {', '.join(map(repr, missing))} "
+            f"entr{'y' if len(missing) == 1 else 'ies'}. Write it again (train the stage again, or copy the file anew)"
+        )
+
+
+def load_weights(module: nn.Module, state: dict, entry: str, path: str | Path) -> None:
+    """``module.load_state_dict(state[entry])``; weights that do not fit the module are reported with the file."""
+    try:
+        module.load_state_dict(state[entry])
+    except RuntimeError as error:
+        raise ValueError(f"{path}: the weights in {entry!r} do not fit the model the checkpoint describes: "
+                         f"{str(error).strip()}") from None
+
+
+def load_checkpoint(path: str | Path, kind: str, entries=()) -> dict:
+    """Loads a checkpoint written by this library and checks that it holds a ``kind`` model with
+    every one of ``entries``. Refuses (:class:`~torchrl_dalir.utils.UnsafeFileError`) a file
+    holding anything but tensors and plain values, before looking at its kind."""
     path = Path(path)
     if path.is_dir():
         found = sorted(path.glob("*.pt"))
@@ -73,6 +98,7 @@ def load_checkpoint(path: str | Path, kind: str) -> dict:
     state = safe_torch_load(path, f"torchrl_dalir {kind} checkpoint")
     if not isinstance(state, dict) or state.get("kind") != kind:
         raise ValueError(f"{path} is not a torchrl_dalir {kind} checkpoint")
+    check_entries(state, path, entries, f"{kind} checkpoint")
     return state
 
 
@@ -82,6 +108,8 @@ def training_finished(checkpoint_path: str | Path) -> bool:
     if not path.exists():
         return False
     state = safe_torch_load(path)
+    if not isinstance(state, dict):
+        raise ValueError(f"{path} is not a torchrl_dalir training checkpoint")
     return state.get("step", 0) >= state.get("num_steps", float("inf"))
 
 
@@ -119,6 +147,7 @@ def fit(
         seed: seeds batch sampling and the model's noise.
         autocast_dtype: e.g. ``torch.bfloat16`` to run forward passes under autocast.
     """
+    check_at_least("num_steps", num_steps, 0)
     checkpoint_path = Path(checkpoint_path)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=optim.lr, betas=tuple(optim.betas), weight_decay=optim.weight_decay)
@@ -128,9 +157,15 @@ def fit(
     torch.manual_seed(seed)
     step = 0
     if checkpoint_path.exists():
-        state = safe_torch_load(checkpoint_path)
-        model.load_state_dict(state["model"])
-        ema.load_state_dict(state["ema"])
+        try:
+            state = safe_torch_load(checkpoint_path, "torchrl_dalir training checkpoint")
+            check_entries(state if isinstance(state, dict) else {}, checkpoint_path, RESUME_ENTRIES, "training checkpoint")
+        except UnsafeFileError:
+            raise
+        except ValueError as error:
+            raise ValueError(f"cannot resume training: {error}. To train from the start instead, delete {checkpoint_path}") from None
+        load_weights(model, state, "model", checkpoint_path)
+        load_weights(ema, state, "ema", checkpoint_path)
         optimizer.load_state_dict(state["optimizer"])
         schedule.load_state_dict(state["schedule"])
         generator.set_state(state["generator"])

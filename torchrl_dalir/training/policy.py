@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 
 from torchrl_dalir import keys
-from torchrl_dalir.config import check_choice, config_dict
+from torchrl_dalir.config import check_at_least, check_choice, config_dict
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.envs.tasks import get_task
@@ -20,8 +20,11 @@ from torchrl_dalir.modules import ChunkPolicy3D, PolicyConfig, make_policy
 from torchrl_dalir.modules.config import POLICY_KINDS
 from torchrl_dalir.objectives import ConsistencyFlowMatchingLoss, DiffusionLoss, FlowMatchingLoss
 from torchrl_dalir.training.logging import make_logger
-from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint
+from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint, load_weights
 from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
+
+# What a policy checkpoint must hold to be loaded (see ``train_policy``'s payload).
+POLICY_ENTRIES = ("task", "policy_config", "action_dim", "state_dim", "num_points", "policy_state")
 
 
 @dataclass
@@ -50,6 +53,8 @@ class PolicyTrainingConfig:
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("policy", self.policy, POLICY_KINDS)
         check_choice("precision", self.precision, PRECISIONS)
+        for name, minimum in (("batch_size", 1), ("epochs", 1), ("num_steps", 0), ("checkpoint_every", 1), ("log_every", 1)):
+            check_at_least(name, getattr(self, name), minimum)
 
     def run_dir(self) -> Path:
         return Path(self.out) / self.task / f"{self.policy}_seed{self.seed}"
@@ -142,13 +147,14 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
 def load_policy(path: str | Path, device: str | torch.device = "cpu", task: str | None = None, **key_names) -> ChunkPolicy3D:
     """Loads the EMA policy of a checkpoint, in eval mode; refuses another task's policy.
     ``key_names``: the policy's ``in_keys``/``out_keys`` if not the defaults."""
-    state = load_checkpoint(path, "policy")
+    state = load_checkpoint(path, "policy", POLICY_ENTRIES)
     if task is not None and state["task"] != task:
         raise ValueError(f"{path} holds a policy for task {state['task']!r}, not {task!r}")
     policy = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"], **key_names)
-    policy.load_state_dict(state["policy_state"])
+    load_weights(policy, state, "policy_state", path)
     policy.num_points = state["num_points"]  # the cloud size it was trained on
     policy.task = state["task"]
+    policy.checkpoint = str(path)
     return policy.to(device).eval()
 
 

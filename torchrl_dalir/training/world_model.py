@@ -23,6 +23,7 @@ see a step of a training trajectory.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
@@ -32,11 +33,12 @@ from tensordict import TensorDict
 from torch import nn
 
 from torchrl_dalir import keys
-from torchrl_dalir.config import check_choice, config_dict
+from torchrl_dalir.config import check_at_least, check_choice, config_dict
 from torchrl_dalir.data import TrajectoryDataset, dense_reward_targets
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.modules import (
+    ChunkPolicy3D,
     LatentEncoder,
     LatentWorldModel,
     PolicyConfig,
@@ -49,9 +51,14 @@ from torchrl_dalir.objectives.imagined_completion import IMAGINED_LATENT
 from torchrl_dalir.objectives.latent_dynamics import LATENT
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training.logging import make_logger
-from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint, save_checkpoint
+from torchrl_dalir.training.loop import OptimConfig, check_entries, fit, load_checkpoint, load_weights, save_checkpoint
 from torchrl_dalir.training.policy import load_policy
 from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
+from torchrl_dalir.utils import weights_digest
+
+# What a world-model checkpoint must hold to be loaded (the scorer ensemble is optional: older ones have none).
+WORLD_MODEL_ENTRIES = ("task", "policy_config", "action_dim", "state_dim", "world_model_args", "scorer_hidden", "encoder_state",
+                       "scorer_state", "world_model_state", "metrics", "policy_checkpoint", "held_out_trajectories")
 
 # The scorer's training target: the sparse terminal labels' Monte-Carlo targets (the method), or
 # the simulator's dense reward-to-go (an oracle, for the ablation).
@@ -105,6 +112,11 @@ class WorldModelTrainingConfig:
         check_choice("scorer_target", self.scorer_target, SCORER_TARGETS)
         check_choice("encoder", self.encoder, ENCODER_MODES)
         check_choice("precision", self.precision, PRECISIONS)
+        for name in ("scorer_batch_size", "wm_batch_size", "ensemble_batch_size", "scorer_epochs", "wm_epochs", "ensemble_members",
+                     "checkpoint_every", "log_every"):
+            check_at_least(name, getattr(self, name), 1)
+        for name in ("scorer_steps", "frozen_scorer_steps", "wm_steps", "ensemble_steps"):
+            check_at_least(name, getattr(self, name), 0)
 
     def variant(self) -> str:
         """What sets this run apart from the paper's: ``""``, or e.g. ``"_frozen+explore"``."""
@@ -257,6 +269,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
             "task": cfg.task,
             "config": config_dict(cfg),
             "policy_checkpoint": str(cfg.policy_checkpoint),
+            "policy_digest": weights_digest(policy),  # which policy's weights it was trained on (see check_trained_on)
             "encoder_mode": cfg.encoder,
             "policy_config": asdict(policy.config),
             "action_dim": policy.action_dim,
@@ -321,22 +334,47 @@ def held_out_imagined_metrics(scorer, ensemble, world_model, batch, target_key=k
     }
 
 
-def load_world_model(path: str | Path, device="cpu") -> SimpleNamespace:
+def check_trained_on(state: dict, policy: ChunkPolicy3D, path: str | Path) -> None:
+    """Refuses the world model of a loaded checkpoint ``state`` (read from ``path``) for a policy it
+    was not trained on top of: another task, or other weights than those whose digest it recorded
+    (latents of other encoders and chunks of another sampler would be scored). A checkpoint written
+    before digests were recorded is accepted with a warning."""
+    if state["task"] != policy.task:
+        raise ValueError(f"the world model at {path} is for task {state['task']!r}; the policy is for {policy.task!r}")
+    recorded, source = state.get("policy_digest"), f"at {policy.checkpoint}" if policy.checkpoint else "given"
+    if recorded is None:
+        warnings.warn(f"{path} does not record which policy it was trained on (an older checkpoint): it is not checked against "
+                      f"the policy {source}. Train the world model again to record it", stacklevel=2)
+        return
+    actual = weights_digest(policy)
+    if actual != recorded:
+        raise ValueError(
+            f"the world model at {path} was trained on top of the policy at {state['policy_checkpoint']}, not on the policy "
+            f"{source}, whose weights differ (digest {actual[:12]} instead of {recorded[:12]}): pass the policy "
+            "it was trained on, or train a world model on this one (examples/train_world_model.py policy_checkpoint=...)"
+        )
+
+
+def load_world_model(path: str | Path, device="cpu", policy: ChunkPolicy3D | None = None) -> SimpleNamespace:
     """Loads ``task``, ``encoder``, ``world_model``, ``scorer``, ``ensemble`` (``None`` in older
     checkpoints), ``selection`` (the calibrated :class:`SelectionConfig`, or the paper's arg-max),
-    ``calibration``, ``metrics`` and ``held_out_trajectories`` of a checkpoint."""
-    state = load_checkpoint(path, "world_model")
+    ``calibration``, ``metrics`` and ``held_out_trajectories`` of a checkpoint. With ``policy``,
+    refuses a world model not trained on top of it (:func:`check_trained_on`)."""
+    state = load_checkpoint(path, "world_model", WORLD_MODEL_ENTRIES)
+    if policy is not None:
+        check_trained_on(state, policy, path)
     shell = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])
     encoder = LatentEncoder.from_policy(shell)
-    encoder.load_state_dict(state["encoder_state"])
+    load_weights(encoder, state, "encoder_state", path)
     world_model = LatentWorldModel(**state["world_model_args"])
-    world_model.load_state_dict(state["world_model_state"])
+    load_weights(world_model, state, "world_model_state", path)
     scorer = TaskCompletionScorer(encoder.latent_dim, state["scorer_hidden"])
-    scorer.load_state_dict(state["scorer_state"])
+    load_weights(scorer, state, "scorer_state", path)
     ensemble = None  # absent from checkpoints written before version 0.2.0
     if "ensemble_state" in state:
+        check_entries(state, path, ("ensemble_args",), "world_model checkpoint")
         ensemble = ScorerEnsemble(**state["ensemble_args"])
-        ensemble.load_state_dict(state["ensemble_state"])
+        load_weights(ensemble, state, "ensemble_state", path)
         ensemble = ensemble.to(device).eval()
     return SimpleNamespace(
         task=state["task"],
@@ -348,5 +386,6 @@ def load_world_model(path: str | Path, device="cpu") -> SimpleNamespace:
         calibration=state.get("calibration"),
         metrics=state["metrics"],
         policy_checkpoint=state["policy_checkpoint"],
+        policy_digest=state.get("policy_digest"),
         held_out_trajectories=state["held_out_trajectories"],
     )
