@@ -13,7 +13,7 @@ from tensordict import TensorDictBase
 from torchrl_dalir.config import check_at_least, check_probability
 from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
-from torchrl_dalir.reranking import PointDropout, RandomCandidateActor, RerankingActor
+from torchrl_dalir.reranking import PointDropout, RandomCandidateActor, RerankingActor, SearchConfig
 from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.seeds import check_eval_seed
@@ -46,6 +46,8 @@ def evaluate_checkpoints(
     methods: list[str] | None = None,
     selection: SelectionConfig | None = None,
     common_noise: bool = True,
+    candidates=None,
+    search: SearchConfig | None = None,
     progress: bool = True,
 ) -> dict[str, dict]:
     """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` is given,
@@ -57,7 +59,9 @@ def evaluate_checkpoints(
     (:class:`RandomCandidateActor`, DALI-R's candidates chosen at random); by default the base
     policy, and DALI-R if there is a world model. ``common_noise`` (the default) gives the reranking
     methods' clean candidate the base policy's own sampling noise (common random numbers, see
-    :class:`RerankingActor`): keeping it replays the base policy's episode. Returns
+    :class:`RerankingActor`): keeping it replays the base policy's episode. ``candidates`` (a
+    candidate generator, by default :class:`PointDropout` ``(dropout)``) and ``search`` (an
+    action-space search, by default none) say how the reranking methods make their candidates. Returns
     ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with ``success_rate``, ``episodes``, ``seconds`` and per-episode ``records``; the reranking
     methods' records describe their choices in ``details`` (:func:`decision_summary`).
     """
@@ -92,8 +96,8 @@ def evaluate_checkpoints(
             actor, describe = receding_horizon(policy), None
         else:
             chooser = reranking[method].on_policy(
-                policy, world_model_path, device, num_candidates=num_candidates, candidates=PointDropout(dropout), seed=actor_seed,
-                common_noise=common_noise, **rules[method],
+                policy, world_model_path, device, num_candidates=num_candidates, seed=actor_seed, common_noise=common_noise,
+                candidates=candidates if candidates is not None else PointDropout(dropout), search=search, **rules[method],
             )
             actor = receding_horizon(chooser)  # every step carries its decision's scores and choice
             describe = partial(decision_summary, action_steps=policy.config.action_steps)

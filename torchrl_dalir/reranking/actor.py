@@ -14,6 +14,7 @@ from torchrl_dalir.config import check_at_least
 from torchrl_dalir.modules.policies import ChunkPolicy3D
 from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
 from torchrl_dalir.reranking.candidates import PointDropout
+from torchrl_dalir.reranking.search import SearchConfig, search_candidates
 from torchrl_dalir.reranking.selection import SelectionConfig, select
 
 CANDIDATE_SCORES = ("dalir", "candidate_scores")  # [..., K] sigmoid(C(s_hat)) of every candidate (ensemble mean)
@@ -24,9 +25,10 @@ class RerankingActor(TensorDictModuleBase):
     """Samples candidate chunks from a frozen policy, imagines and scores each, executes one.
 
     At each decision: build ``num_candidates`` perturbed policy inputs (candidate 0 is always
-    the clean observation), sample all chunks in one batched policy call, imagine each chunk's
-    executed part with one world-model step from the current latent, score the imagined latents,
-    choose by the ``selection`` rule (:mod:`~torchrl_dalir.reranking.selection`; the paper's is
+    the clean observation), sample all chunks in one batched policy call, optionally search the
+    action space around them (``search``), imagine each chunk's executed part with one
+    world-model step from the current latent, score the imagined latents, choose by the
+    ``selection`` rule (:mod:`~torchrl_dalir.reranking.selection`; the paper's is
     the arg-max) and write the chosen chunk to ``action_chunk`` (plus every score and the
     chosen index).
     Wrap it with :func:`~torchrl_dalir.modules.receding_horizon.receding_horizon` exactly like
@@ -39,7 +41,11 @@ class RerankingActor(TensorDictModuleBase):
             :mod:`torchrl_dalir.modules.world_model`).
         num_candidates: candidates per decision (the paper: 32).
         candidates: the candidate generator (default :class:`PointDropout` ``(0.2)``; or
-            :class:`~torchrl_dalir.reranking.candidates.GaussianObservationNoise`).
+            :class:`~torchrl_dalir.reranking.candidates.GaussianObservationNoise`, or
+            :class:`~torchrl_dalir.reranking.candidates.CleanObservation`, the seeds of an action-space search).
+        search: an action-space search around the generated candidates (default ``none``; random
+            shooting, CEM, MPPI or score-gradient ascent on the selection's scorer, see
+            :mod:`~torchrl_dalir.reranking.search`): the paper's Table 2 alternatives to point dropout.
         seed: seeds candidate perturbations and policy noise, so decisions are reproducible.
         ensemble: the scorer ensemble trained on imagined latents (needed by
             ``selection.scorer="ensemble"``).
@@ -69,6 +75,7 @@ class RerankingActor(TensorDictModuleBase):
         seed: int = 0,
         ensemble: ScorerEnsemble | None = None,
         selection: SelectionConfig | None = None,
+        search: SearchConfig | None = None,
         common_noise: bool = False,
         in_keys: Sequence[NestedKey] = (keys.POINT_CLOUD, keys.AGENT_POS),
         out_keys: Sequence[NestedKey] = (keys.ACTION_CHUNK, CANDIDATE_SCORES, CHOSEN_CANDIDATE),
@@ -86,6 +93,8 @@ class RerankingActor(TensorDictModuleBase):
         if self.selection.scorer == "ensemble" and ensemble is None:
             raise ValueError(f"selection {self.selection.name} needs a scorer ensemble; this world model has none "
                              "(checkpoints written before version 0.2.0 have none: retrain the world-model stage)")
+        self.search = search if search is not None else SearchConfig()
+        self.search.check(num_candidates, policy.action_dim)
         self.policy, self.encoder, self.world_model, self.scorer, self.ensemble = policy, encoder, world_model, scorer, ensemble
         for module in (policy, encoder, world_model, scorer, ensemble):
             if module is not None:
@@ -128,17 +137,30 @@ class RerankingActor(TensorDictModuleBase):
         """Imagined latents ``[B, K, L]`` after the executed part of chunks ``[B, K, H, A]``,
         from observations ``[B, To, ...]``."""
         latent = self.encoder(cloud[:, -1], agent_pos[:, -1])  # s_t from the current observation
-        executed = chunks[..., self.policy.config.executed, :]
-        return self.world_model.imagine(latent.unsqueeze(1).expand(-1, chunks.shape[1], -1), executed)
+        return self._imagine_executed(latent, chunks[..., self.policy.config.executed, :])
+
+    def _imagine_executed(self, latent: torch.Tensor, executed: torch.Tensor) -> torch.Tensor:
+        return self.world_model.imagine(latent.unsqueeze(1).expand(-1, executed.shape[1], -1), executed)
+
+    def _probabilities(self, imagined: torch.Tensor) -> torch.Tensor:
+        """Completion probabilities ``[B, E, K]`` of imagined latents ``[B, K, L]`` by each member of the selection's scorer."""
+        if self.selection.scorer == "ensemble":
+            return torch.sigmoid(self.ensemble(imagined)).transpose(0, 1)
+        return torch.sigmoid(self.scorer(imagined)).unsqueeze(1)
 
     @torch.no_grad()
     def member_scores(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
         """Completion probabilities ``[B, E, K]`` of chunks ``[B, K, H, A]`` by each of the ``E``
         members of the selection's scorer (``E = 1`` for the state scorer)."""
-        imagined = self.imagine(cloud, agent_pos, chunks)
-        if self.selection.scorer == "ensemble":
-            return torch.sigmoid(self.ensemble(imagined)).transpose(0, 1)
-        return torch.sigmoid(self.scorer(imagined)).unsqueeze(1)
+        return self._probabilities(self.imagine(cloud, agent_pos, chunks))
+
+    @torch.no_grad()
+    def objective(self, cloud: torch.Tensor, agent_pos: torch.Tensor):
+        """The score an action-space search maximises at observations ``[B, To, ...]``: a function
+        from executed actions ``[B, N, k, A]`` (env units) to the members' mean completion
+        probability ``[B, N]``, differentiable in the actions (the current latent is encoded once)."""
+        latent = self.encoder(cloud[:, -1], agent_pos[:, -1])
+        return lambda executed: self._probabilities(self._imagine_executed(latent, executed)).mean(1)
 
     @torch.no_grad()
     def score(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
@@ -148,7 +170,15 @@ class RerankingActor(TensorDictModuleBase):
 
     @torch.no_grad()
     def sample_candidates(self, cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
-        """Candidate chunks ``[B, K, H, A]``; candidate 0 comes from the clean observation."""
+        """Candidate chunks ``[B, K, H, A]``; candidate 0 is the policy's sample from the clean
+        observation, the others are perturbed-input samples, or what ``search`` found from them."""
+        chunks = self._policy_samples(cloud, agent_pos)
+        if self.search.method == "none":
+            return chunks
+        objective = self.objective(cloud, agent_pos)
+        return search_candidates(chunks, objective, self.search, self.policy.action_normalizer, self.policy.config.executed, self.generator)
+
+    def _policy_samples(self, cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
         cond = self.candidates.conditions(self.policy, cloud, agent_pos, self.num_candidates, self.generator)
         if not self.common_noise:
             return self.policy.sample(cond, self.generator)

@@ -89,6 +89,16 @@ class GaussianObservationNoise:
         return policy.encode(noisy.flatten(0, 1), states.flatten(0, 1)).reshape(batch, num_candidates, -1)
 
 
+class CleanObservation:
+    """No input perturbation: every candidate is sampled from the clean observation and they differ
+    only by the policy's sampling noise (repeated queries of the frozen policy). The seeds of an
+    action-space search (:mod:`~torchrl_dalir.reranking.search`); the observation is encoded once.
+    """
+
+    def conditions(self, policy, cloud, agent_pos, num_candidates: int, generator: torch.Generator) -> torch.Tensor:
+        return policy.encode(cloud, agent_pos).unsqueeze(1).expand(-1, num_candidates, -1)
+
+
 class DropoutPolicy(TensorDictModuleBase):
     """A policy that acts on a point-dropout view of its observation: each decision is one of
     DALI-R's perturbed candidates, taken at random. Its rollouts are exploration data that covers

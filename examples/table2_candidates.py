@@ -1,0 +1,129 @@
+"""Paper Table 2: where should DALI-R's candidate diversity come from?
+
+    python examples/table2_candidates.py policies=[.../disassemble/fm_seed0/checkpoint.pt] world_models=[.../world_model.pt]
+    python examples/table2_candidates.py policies=[a.pt,b.pt] world_models=[a_wm.pt,b_wm.pt] episodes=50 out=outputs/table2
+    python examples/table2_candidates.py ... sources=[dropout,cem] search.iterations=5 search.elites=8
+
+Every (policy, world model) pair (one task and seed each) is evaluated on the same episodes with
+the same frozen policy, world model, scorer and selection rule (the paper's arg-max), changing only
+how the ``num_candidates`` candidate chunks are made: by perturbing the policy's input (``dropout``,
+DALI-R's point dropout; ``noise``, Gaussian observation noise) or by searching the action space
+around clean policy samples (``shooting``, ``cem``, ``mppi``, ``gradient``; settings under
+``search.``, see :mod:`torchrl_dalir.reranking.search`); ``resample`` (clean policy samples alone)
+is the action-space methods' starting point. The base policy runs once per pair, as the reference.
+On MetaWorld the search leaves the gripper command as sampled (``keep_gripper``, as the paper does).
+
+Writes ``<out>/table2.md`` (success per task, mean over seeds, and the average),
+``<out>/table2.json`` (the same with every episode's record) and ``<out>/table2.png``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from torchrl_dalir.config import config_dict, parse_config
+from torchrl_dalir.envs import get_task
+from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints
+from torchrl_dalir.evaluation.plots import plot_success_by_task
+from torchrl_dalir.reranking import CleanObservation, GaussianObservationNoise, PointDropout, SearchConfig
+from torchrl_dalir.reranking.selection import SelectionConfig
+from torchrl_dalir.training import load_policy
+from torchrl_dalir.utils import atomic_write_text
+
+INPUT_SOURCES = {"dropout": "point dropout", "noise": "observation noise", "resample": "policy samples"}
+SEARCH_SOURCES = {"shooting": "random shooting", "cem": "CEM", "mppi": "MPPI", "gradient": "score-gradient ascent"}
+SOURCES = {**INPUT_SOURCES, **SEARCH_SOURCES}
+GRIPPER_DIMS = {"metaworld": [3], "adroit": []}  # MetaWorld actions are (dx, dy, dz, gripper); Adroit hands have no gripper
+
+
+@dataclass
+class Config:
+    policies: list[str] = field(default_factory=lambda: ["outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"])
+    world_models: list[str] = field(default_factory=lambda: ["outputs/pipeline/world_models/fm/disassemble/seed0/world_model.pt"])
+    sources: list[str] = field(default_factory=lambda: ["dropout", "noise", *SEARCH_SOURCES])  # among SOURCES
+    episodes: int = 50
+    seed: int = 0  # the evaluation seed: episodes never overlap data-generation episodes
+    device: str = "cpu"
+    num_candidates: int = 32  # the candidate budget of every source
+    dropout: float = 0.2  # point-dropout probability
+    noise_std: float = 0.01  # observation noise, metres
+    search: SearchConfig = field(default_factory=SearchConfig)  # the action-space methods' settings (the method is the source)
+    keep_gripper: bool = True  # the search leaves the gripper command as sampled (the paper)
+    selection: SelectionConfig = field(default_factory=SelectionConfig)  # the same rule for every source (the paper: arg-max)
+    actor_seed: int = 0
+    common_noise: bool = True  # the clean candidate draws the base policy's own noise (common random numbers)
+    out: str = "outputs/table2"
+
+
+def candidate_source(name: str, cfg: Config, suite: str) -> dict:
+    """The ``candidates`` and ``search`` of :func:`evaluate_checkpoints` for source ``name``."""
+    if name == "dropout":
+        return {"candidates": PointDropout(cfg.dropout)}
+    if name == "noise":
+        return {"candidates": GaussianObservationNoise(cfg.noise_std)}
+    if name == "resample":
+        return {"candidates": CleanObservation()}
+    fixed = sorted({*cfg.search.fixed_dims, *(GRIPPER_DIMS[suite] if cfg.keep_gripper else [])})
+    return {"candidates": CleanObservation(), "search": dataclasses.replace(cfg.search, method=name, fixed_dims=fixed)}
+
+
+def evaluate_run(policy_path: str, world_model_path: str, cfg: Config) -> dict:
+    """Every source of ``cfg`` and the base policy on one (policy, world model) pair, on the same episodes."""
+    task = load_policy(policy_path, cfg.device).task
+    common = dict(episodes=cfg.episodes, seed=cfg.seed, device=cfg.device, num_candidates=cfg.num_candidates,
+                  actor_seed=cfg.actor_seed, selection=cfg.selection, common_noise=cfg.common_noise)
+    methods = {"base": evaluate_checkpoints(policy_path, world_model_path, methods=["base"], **common)[BASE]}
+    for name in cfg.sources:
+        source = candidate_source(name, cfg, get_task(task).suite)
+        row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], **common, **source)[DALIR]
+        methods[name] = {**row, **({"search": source["search"].name} if "search" in source else {})}
+    return {"task": task, "policy": policy_path, "world_model": world_model_path, "methods": methods}
+
+
+def success_table(runs: list[dict], keys: list[str]) -> list[dict]:
+    """One row per task: every method's per-seed success rates (the input of :func:`plot_success_by_task`)."""
+    tasks = list(dict.fromkeys(run["task"] for run in runs))
+    return [{"task": task, **{k: [r["methods"][k]["success_rate"] for r in runs if r["task"] == task] for k in keys}} for task in tasks]
+
+
+def markdown(table: list[dict], keys: list[str], labels: dict[str, str]) -> str:
+    """Success (%) per task, mean over seeds, and the average over tasks."""
+    def mean(values):
+        return 100 * sum(values) / len(values)
+
+    lines = ["| method | variation | " + " | ".join(row["task"] for row in table) + " | avg. |",
+             "| --- | --- |" + " --- |" * (len(table) + 1)]
+    for k in keys:
+        target = "none" if k == "base" else ("action chunk" if k in SEARCH_SOURCES else "policy input")
+        cells = [mean(row[k]) for row in table]
+        lines.append(f"| {labels[k]} | {target} | " + " | ".join(f"{c:.1f}" for c in cells) + f" | {sum(cells) / len(cells):.1f} |")
+    seeds = sorted({len(row["base"]) for row in table})
+    return "\n".join(lines) + f"\n\nSeeds per task: {', '.join(map(str, seeds))}.\n"
+
+
+def main(argv: list[str]) -> None:
+    cfg: Config = parse_config(Config, argv)
+    unknown = set(cfg.sources) - set(SOURCES)
+    if unknown:
+        raise ValueError(f"unknown sources {sorted(unknown)}; choose among {sorted(SOURCES)}")
+    if len(cfg.policies) != len(cfg.world_models):
+        raise ValueError(f"{len(cfg.policies)} policies but {len(cfg.world_models)} world models: give one world model per policy")
+    runs = [evaluate_run(p, w, cfg) for p, w in zip(cfg.policies, cfg.world_models)]
+    keys = ["base", *cfg.sources]
+    labels = {"base": "base policy", **SOURCES}
+    table = success_table(runs, keys)
+    text = markdown(table, keys, labels)
+    print(text)
+    out = Path(cfg.out)
+    atomic_write_text(out / "table2.md", text)
+    atomic_write_text(out / "table2.json", json.dumps({"config": config_dict(cfg), "table": table, "runs": runs}, indent=1))
+    plot_success_by_task(table, out / "table2.png", title="Where candidate diversity comes from",
+                         methods=tuple((k, labels[k]) for k in keys))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
