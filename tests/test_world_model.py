@@ -167,3 +167,17 @@ def test_extra_data_joins_the_mixed_data(trained_world_model, collected):
         assert (second[keys.TRAJECTORY_ID] == collected.num_trajectories + i).all()
         assert (second[keys.SOURCE] == collected.trajectory(i)[keys.SOURCE] + len(collected.meta.sources)).all()
     assert dataclasses.replace(cfg, extra_data=["more"]).run_dir().name == "seed0+more"
+
+
+def test_the_scorer_ensemble_can_learn_from_chosen_sources_only(trained_world_model, collected):
+    cfg, path, _ = trained_world_model
+    assert load_world_model(path).metrics["ensemble_windows"] == sum(  # every training window by default
+        len(collected.trajectory(i)) - 1 for i in (1, 2, 3))  # trajectories 0 and 4 are held out (seed 0)
+    noisy = dataclasses.replace(cfg, ensemble_sources=["expert_noisy"], ensemble_steps=5)
+    assert noisy.run_dir().name == "seed0_ens-expert_noisy"
+    parts = load_world_model(train_world_model(noisy))
+    assert parts.metrics["ensemble_windows"] == sum(len(collected.trajectory(i)) - 1 for i in (2, 3))  # the noisy experts'
+    with pytest.raises(ValueError, match="no source \\['teleop'\\]"):
+        train_world_model(dataclasses.replace(cfg, ensemble_sources=["teleop"]))
+    with pytest.raises(ValueError, match="no training trajectory of the sources \\['still'\\]"):
+        train_world_model(dataclasses.replace(cfg, ensemble_sources=["still"]))

@@ -96,6 +96,7 @@ class WorldModelTrainingConfig:
     wm_epochs: int = 100
     wm_steps: int = 0  # 0: derive from wm_epochs
     wm_optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-4, betas=(0.9, 0.999), weight_decay=1e-4, warmup_steps=0))
+    ensemble_sources: list[str] = field(default_factory=list)  # train the ensemble on these sources only (e.g. [base_policy,exploration]); empty: all
     ensemble_members: int = 5
     ensemble_hidden: int = 256
     ensemble_batch_size: int = 256
@@ -119,9 +120,11 @@ class WorldModelTrainingConfig:
             check_at_least(name, getattr(self, name), 0)
 
     def variant(self) -> str:
-        """What sets this run apart from the paper's: ``""``, or e.g. ``"_frozen+explore"``."""
+        """What sets this run apart from the paper's: ``""``, or e.g. ``"_frozen+explore"`` or
+    ``"_frozen_ens-base_policy-exploration+explore"``."""
         parts = [self.scorer_target] if self.scorer_target != "completion" else []
         parts += [self.encoder] if self.encoder != "finetune" else []
+        parts += ["ens-" + "-".join(self.ensemble_sources)] if self.ensemble_sources else []
         return "".join(f"_{p}" for p in parts) + "".join(f"+{name}" for name in self.extra_data)
 
     def run_dir(self) -> Path:
@@ -146,6 +149,15 @@ def training_data(cfg: WorldModelTrainingConfig) -> TrajectoryDataset:
     root = Path(cfg.data) / cfg.task
     datasets = [TrajectoryDataset.load(root / name, task=cfg.task) for name in (cfg.mixed_name, *cfg.extra_data)]
     return datasets[0] if len(datasets) == 1 else TrajectoryDataset.concat(datasets)
+
+
+def source_mask(dataset: TrajectoryDataset, names: list[str]) -> torch.Tensor:
+    """A bool mask over ``dataset``'s source indices: ``True`` for the sources named ``names``."""
+    known = [source["name"] for source in dataset.meta.sources]
+    unknown = sorted(set(names) - set(known))
+    if unknown:
+        raise ValueError(f"{dataset.root} has no source {unknown}; its sources are {known}")
+    return torch.tensor([name in names for name in known])
 
 
 def split_trajectories(num_trajectories: int, held_out_fraction: float, seed: int) -> torch.Tensor:
@@ -188,6 +200,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     policy = load_policy(cfg.policy_checkpoint, task=cfg.task)
     mixed = training_data(cfg)
     rows = mixed.rows
+    ensemble_sources = source_mask(mixed, cfg.ensemble_sources) if cfg.ensemble_sources else None  # fails before any training
     target_key = SCORER_TARGETS[cfg.scorer_target]
     if cfg.scorer_target == "dense_reward":  # an in-memory target next to the memory-mapped rows
         rows = TensorDict(dict(rows.items()), batch_size=rows.batch_size)
@@ -195,6 +208,8 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     held = split_trajectories(mixed.num_trajectories, cfg.held_out_fraction, cfg.seed)
     held_rows = held[rows[keys.TRAJECTORY_ID]]
     train_rows = torch.nonzero(~held_rows).squeeze(-1)
+    if ensemble_sources is not None and not ensemble_sources[rows[keys.SOURCE][train_rows]].any():
+        raise ValueError(f"no training trajectory of the sources {cfg.ensemble_sources} (all held out?): add data of them or name others")
     logger = make_logger(run_dir, f"{cfg.task}_world_model_seed{cfg.seed}", use_wandb=cfg.wandb, config=config_dict(cfg))
     autocast = autocast_dtype(cfg.precision, cfg.device)
 
@@ -248,17 +263,22 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     world_model = train_stage(LatentDynamicsLoss(world_model), world_model, train_windows, torch.arange(len(train_windows)), (cfg.wm_batch_size,), wm_steps, cfg.wm_optim, "dynamics").eval()
 
     # Stage 3: the scorer ensemble on imagined latents of the recorded chunks, against the
-    # target at t + k (each member on its own random batches).
+    # target at t + k (each member on its own random batches); with ``ensemble_sources``, only
+    # the chunks of those sources (e.g. the base policy's own rollouts: its outcomes from there on).
     imagined = TensorDict({IMAGINED_LATENT: imagine_windows(world_model, train_windows), keys.FUTURE: train_windows[keys.FUTURE]}, [len(train_windows)])
+    ensemble_index = torch.arange(len(imagined))
+    if ensemble_sources is not None:
+        ensemble_index = torch.nonzero(ensemble_sources[rows[keys.SOURCE][windows.anchors[train_anchors]]]).squeeze(-1)
     ensemble = ScorerEnsemble(encoder.latent_dim, cfg.ensemble_hidden, cfg.ensemble_members).to(cfg.device)
     ensemble_loss = ImaginedCompletionLoss(ensemble)
     ensemble_loss.set_keys(target=(keys.FUTURE, target_key))
-    ensemble = train_stage(ensemble_loss, ensemble, imagined, torch.arange(len(imagined)), (cfg.ensemble_members, cfg.ensemble_batch_size),
+    ensemble = train_stage(ensemble_loss, ensemble, imagined, ensemble_index, (cfg.ensemble_members, cfg.ensemble_batch_size),
                            cfg.ensemble_steps, cfg.ensemble_optim, "ensemble").eval()
 
     encoder, scorer, world_model, ensemble = encoder.cpu(), scorer.cpu(), world_model.cpu(), ensemble.cpu()  # metrics and checkpoint on the CPU
     metrics = held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, torch.nonzero(held_anchor).squeeze(-1), wm_batch, target_key)
     metrics.update(held_out_imagined_metrics(scorer, ensemble, world_model, wm_batch(torch.nonzero(held_anchor).squeeze(-1)), target_key))
+    metrics["ensemble_windows"] = len(ensemble_index)
     logger({f"held_out/{k}": v for k, v in metrics.items()}, wm_steps)
     from torchrl_dalir import __version__
 
