@@ -26,6 +26,7 @@ from statistics import mean, pstdev
 
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.evaluation.compare import METHODS, paired_sign_test
+from torchrl_dalir.evaluation.paper import TABLE1, TABLE1_TASKS
 from torchrl_dalir.evaluation.plots import plot_success_by_task
 from torchrl_dalir.utils import atomic_write_text
 
@@ -37,7 +38,8 @@ TRUSTED = (("base", "base policy"), ("dalir", "DALI-R, calibrated rule"), ("argm
 class Config:
     out: str = "outputs/pipeline"
     trusted_json: str | None = None  # also write the trusted-selection data here (e.g. docs/results/trusted_selection.json)
-    variant: str = PAPER  # the world-model variant of the trusted-selection table (e.g. frozen+explore)
+    variant: str = PAPER  # the world-model variant of the trusted-selection table and Table 1 (e.g. frozen+explore)
+    table1_json: str | None = None  # also build the paper's Table 1 and write its data here (e.g. docs/results/table1.json)
 
 
 def variant_label(run_name: str, policy: str, seed: int) -> str:
@@ -154,6 +156,40 @@ def trusted_table(data: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def table1(table: list[dict], variant: str = PAPER) -> dict:
+    """``{backbone: {task: {"base": [% per seed], "dalir": [...], "seeds", "episodes", "p",
+    "rules", "paper_base", "paper_dalir"}}}`` for the paper's six tasks that have runs of ``variant``."""
+    out = {}
+    for row in sorted(table, key=lambda r: (r["policy"], TABLE1_TASKS.index(r["task"]) if r["task"] in TABLE1_TASKS else len(TABLE1_TASKS))):
+        if row["variant"] != variant or row["task"] not in TABLE1_TASKS:
+            continue
+        paper = TABLE1.get(row["policy"], {}).get(row["task"], (None, None))
+        out.setdefault(row["policy"], {})[row["task"]] = {
+            "base": [round(100 * r, 1) for r in row["base"]], "dalir": [round(100 * r, 1) for r in row["dalir"]],
+            "seeds": row["seeds"], "episodes": row["episodes"][0] if len(row["episodes"]) == 1 else row["episodes"],
+            "p": round(row["p_value"], 4), "rules": sorted(set(row["rules"])), "paper_base": paper[0], "paper_dalir": paper[1]}
+    return out
+
+
+def table1_markdown(data: dict) -> str:
+    def cell(values):
+        return f"{mean(values):.1f} +- {pstdev(values):.1f}"
+
+    lines = ["| backbone | task | seeds x episodes | base (%) | + DALI-R (%) | gain | sign-test p | DALI-R rule | paper: base -> DALI-R |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for backbone, tasks in data.items():
+        for task, t in tasks.items():
+            paper = f"{t['paper_base']} -> {t['paper_dalir']}" if t["paper_base"] is not None else ""
+            lines.append(f"| {backbone} | {task} | {len(t['seeds'])} x {t['episodes']} | {cell(t['base'])} | {cell(t['dalir'])} | "
+                         f"{mean(t['dalir']) - mean(t['base']):+.1f} | {t['p']:.3f} | {', '.join(t['rules'])} | {paper} |")
+        gains = [mean(t["dalir"]) - mean(t["base"]) for t in tasks.values()]
+        papers = [t["paper_dalir"] - t["paper_base"] for t in tasks.values() if t["paper_base"] is not None]
+        lines.append(f"| {backbone} | average of {len(tasks)} tasks | | {mean(mean(t['base']) for t in tasks.values()):.1f} | "
+                     f"{mean(mean(t['dalir']) for t in tasks.values()):.1f} | {mean(gains):+.1f} | | | "
+                     f"{f'gain {mean(papers):+.1f} on the same tasks' if papers else ''} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
     root = Path(cfg.out)
@@ -179,6 +215,18 @@ def main(argv: list[str]) -> None:
             rows = trusted_rows(table, policy, cfg.variant)
             if rows:
                 plot_success_by_task(rows, root / f"trusted_selection_{policy}.png", title=f"Selection rules on a frozen {policy.upper()} policy", methods=TRUSTED)
+    if cfg.table1_json:
+        data = table1(table, cfg.variant)
+        if not data:
+            raise FileNotFoundError(f"no runs of variant {cfg.variant!r} on the paper's tasks {TABLE1_TASKS} under {root / 'results'}")
+        text = table1_markdown(data)
+        print(text)
+        atomic_write_text(root / "table1.md", text)
+        for path in (root / "table1.json", Path(cfg.table1_json)):
+            atomic_write_text(path, json.dumps(data, indent=1) + "\n")
+        for backbone in data:
+            rows = [{"task": task, "base": [v / 100 for v in t["base"]], "dalir": [v / 100 for v in t["dalir"]]} for task, t in data[backbone].items()]
+            plot_success_by_task(rows, root / f"table1_{backbone}.png", title=f"Table 1 ({backbone.upper()}): base policy and DALI-R")
 
 
 if __name__ == "__main__":

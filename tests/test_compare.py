@@ -98,7 +98,7 @@ def test_summarize_results_groups_seeds_by_world_model_variant(tmp_path, monkeyp
     run("fm_seed0_frozen+explore_fm_seed0", 0, no, [True, False, False, False])
     run("fm_seed1_frozen+explore_fm_seed1", 1, no, yes)
     script = Path(__file__).resolve().parents[1] / "examples" / "summarize_results.py"
-    monkeypatch.setattr(sys, "argv", ["x", f"out={tmp_path}", "variant=frozen+explore"])
+    monkeypatch.setattr(sys, "argv", ["x", f"out={tmp_path}", "variant=frozen+explore", f"table1_json={tmp_path / 'table1.json'}"])
     runpy.run_path(str(script), run_name="__main__")
     rows = {(r["variant"], tuple(r["seeds"])): r for r in json.loads((tmp_path / "summary.json").read_text())}
     assert sorted(rows) == [("frozen+explore", (0, 1)), ("paper", (0,))]
@@ -106,3 +106,8 @@ def test_summarize_results_groups_seeds_by_world_model_variant(tmp_path, monkeyp
     trusted = json.loads((tmp_path / "trusted_selection.json").read_text())
     assert trusted["variant"] == "frozen+explore" and trusted["tasks"]["stick-pull"]["seeds"] == 2
     assert trusted["tasks"]["stick-pull"]["default"] == 62.5 and trusted["mean_gain"] == 62.5
+    table1 = json.loads((tmp_path / "table1.json").read_text())  # the paper's Table 1, for the same variant
+    assert table1 == {"fm": {"stick-pull": {"base": [0.0, 0.0], "dalir": [25.0, 100.0], "seeds": [0, 1], "episodes": 4, "p": 0.0625,
+                                            "rules": ["margin(ensemble, k=1, margin=1)"], "paper_base": 48.7, "paper_dalir": 50.7}}}
+    assert "| fm | stick-pull | 2 x 4 | 0.0 +- 0.0 | 62.5 +- 37.5 | +62.5 | 0.062 |" in (tmp_path / "table1.md").read_text()
+    assert (tmp_path / "table1_fm.png").stat().st_size > 0
