@@ -4,9 +4,10 @@
     python examples/train_dp3_wm.py task=shelf-place policy=dp seed=1
     python examples/train_dp3_wm.py preset=smoke out=/tmp/dalir      # about a minute, for tests
 
-Every stage writes an artifact under ``out`` and is skipped when that artifact exists
-(``redo=[world_model]`` runs that stage and the later ones again from scratch, keeping the
-previous runs aside); interrupted stages resume. The results (a markdown table, JSON and the
+Every stage writes an artifact under ``out`` and is skipped once that artifact is complete (a
+dataset marked complete in its ``meta.json``, a training at its last step); an interrupted stage
+resumes. ``redo=[world_model]`` runs that stage and the later ones again from scratch, keeping
+the previous runs aside. The results (a markdown table, JSON and the
 diagnostic plots) go to ``<out>/results/<task>/<policy>_seed<seed>/``.
 """
 
@@ -20,6 +21,7 @@ from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.data import Source, TrajectoryDataset, collect
+from torchrl_dalir.data.storage import is_complete
 from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, store_selection
 from torchrl_dalir.evaluation.compare import (
     ARGMAX,
@@ -40,7 +42,7 @@ from torchrl_dalir.utils import atomic_write_text
 
 
 def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exists) -> None:
-    """Runs ``run`` unless ``finished(artifact)``. A stage in ``cfg.redo`` starts from scratch:
+    """Runs ``run`` unless ``finished(artifact)`` (a stage that ran to its end; an interrupted one runs again and resumes). A stage in ``cfg.redo`` starts from scratch:
     its directory (the artifact's parent) is first moved aside to ``<dir>.replaced-<time>``.
     Stages after ``cfg.until`` are not run."""
     if STAGES.index(name) > STAGES.index(cfg.until):
@@ -66,8 +68,10 @@ def main(argv: list[str]) -> None:
     results = cfg.results_dir()
 
     # 1. Expert demos: successful expert trajectories only, the same for every training seed.
-    stage("demos", cfg, data.demos_dir() / "rows", lambda: collect(
-        cfg.task, data.demos_dir(), [Source("expert", data.num_demos)], seed=cfg.demo_seed, successes_only=True, **common))
+    # (a dataset is done once its meta.json marks it complete, not when its rows exist: the two are not written at once)
+    stage("demos", cfg, data.demos_dir() / "meta.json", lambda: collect(
+        cfg.task, data.demos_dir(), [Source("expert", data.num_demos)], seed=cfg.demo_seed, successes_only=True, **common),
+        finished=dataset_finished)
 
     # 2. The base policy learns from the demos alone (the data asymmetry).
     # (an interrupted training leaves a checkpoint behind: the stage resumes it)
@@ -75,16 +79,16 @@ def main(argv: list[str]) -> None:
 
     # 3. Mixed-quality data: noisy experts and rollouts of the trained base policy, all labeled.
     base_rollouts = Source("base_policy", cfg.base_policy_rollouts, policy=partial(policy_actor, str(policy_path)), expert=False, history=2)
-    stage("mixed", cfg, data.mixed_dir() / "rows", lambda: collect(
+    stage("mixed", cfg, data.mixed_dir() / "meta.json", lambda: collect(
         cfg.task, data.mixed_dir(), [*data.mixed_sources(), base_rollouts], seed=2 * cfg.seed + 1,
-        noise_correlation=data.noise_correlation, **common))
+        noise_correlation=data.noise_correlation, **common), finished=dataset_finished)
 
     # 3b. Optional exploration data: the base policy acting on point-dropout views.
     if cfg.exploration_rollouts > 0:
         explore = Source("exploration", cfg.exploration_rollouts, policy=partial(exploration_actor, str(policy_path), cfg.dropout, cfg.seed),
                          expert=False, history=2)
-        stage("exploration", cfg, data.task_dir() / cfg.exploration_name() / "rows", lambda: collect(
-            cfg.task, data.task_dir() / cfg.exploration_name(), [explore], seed=2 * cfg.seed + 2, **common))
+        stage("exploration", cfg, data.task_dir() / cfg.exploration_name() / "meta.json", lambda: collect(
+            cfg.task, data.task_dir() / cfg.exploration_name(), [explore], seed=2 * cfg.seed + 2, **common), finished=dataset_finished)
 
     # 4. Latent encoder, task-completion scorer and latent world model, the policy frozen.
     stage("world_model", cfg, world_model_path, lambda: train_world_model(cfg.world_model))
@@ -102,6 +106,11 @@ def main(argv: list[str]) -> None:
           finished=lambda path: path.exists() and evaluated_rule(path) in (None, load_world_model(world_model_path).selection.name))
     if cfg.until == STAGES[-1]:
         print((results / "results.md").read_text())
+
+
+def dataset_finished(meta_path: Path) -> bool:
+    """Whether the dataset whose ``meta.json`` is ``meta_path`` is complete."""
+    return is_complete(meta_path.parent)
 
 
 def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_path: Path, out: Path) -> None:

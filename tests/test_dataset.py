@@ -1,12 +1,18 @@
+import dataclasses
 import json
+import re
+from functools import partial
 
 import pytest
 import torch
-from conftest import SHORT_REACH, still_policy
+from conftest import SHORT_REACH, still_policy, synthetic_trajectory
 
 from torchrl_dalir import keys
-from torchrl_dalir.data import DatasetWriter, Source, TrajectoryDataset, collect
-from torchrl_dalir.data.storage import DatasetMeta
+from torchrl_dalir.data import DatasetWriter, Source, TrajectoryDataset, collect, storage, trajectory_rows
+from torchrl_dalir.data.storage import DatasetMeta, is_complete
+from torchrl_dalir.envs import action_bounds
+
+TINY_REACH = dataclasses.replace(SHORT_REACH, max_steps=16)  # two decisions of the base policy per trajectory
 
 
 def test_collected_labels_follow_the_formula(collected):
@@ -65,17 +71,24 @@ def test_mismatched_dataset_is_refused(collected):
         collect(SHORT_REACH, collected.root, [Source("expert", 3)], seed=1, gamma=0.9, num_points=64)
 
 
+def crash_after_two_chunks(monkeypatch):
+    """Makes the next collection stop (as if killed) when it is about to store its third chunk."""
+    original = DatasetWriter.write_chunk
+
+    def write_or_crash(self, chunk, rows, **info):
+        if len(self.meta.shards) == 2:
+            raise KeyboardInterrupt
+        original(self, chunk, rows, **info)
+
+    monkeypatch.setattr(DatasetWriter, "write_chunk", write_or_crash)
+    return lambda: monkeypatch.setattr(DatasetWriter, "write_chunk", original)
+
+
 def test_interrupted_collection_resumes_to_the_same_data(tmp_path, monkeypatch):
     sources = [Source("expert", 2), Source("still", 1, policy=still_policy, expert=False)]
     kwargs = dict(seed=2, gamma=0.9, num_points=32, num_workers=1, chunk_size=1, progress=False)
     reference = collect(SHORT_REACH, tmp_path / "reference", sources, **kwargs)
-
-    original = DatasetWriter.write_chunk
-    def crash_after_two_chunks(self, chunk, rows, **info):
-        if len(self.meta.shards) == 2:
-            raise KeyboardInterrupt
-        original(self, chunk, rows, **info)
-    monkeypatch.setattr(DatasetWriter, "write_chunk", crash_after_two_chunks)
+    restore = crash_after_two_chunks(monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         collect(SHORT_REACH, tmp_path / "resumed", sources, **kwargs)
     meta = json.loads((tmp_path / "resumed" / "meta.json").read_text())
@@ -83,17 +96,130 @@ def test_interrupted_collection_resumes_to_the_same_data(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="incomplete"):
         TrajectoryDataset.load(tmp_path / "resumed")
 
-    monkeypatch.setattr(DatasetWriter, "write_chunk", original)
+    restore()
     resumed = collect(SHORT_REACH, tmp_path / "resumed", sources, **kwargs)
     assert (resumed.rows == reference.rows).all()
     assert [s["chunk"] for s in resumed.meta.shards] == [0, 1, 2]
 
 
+def test_interrupted_base_policy_collection_resumes_to_the_same_data(trained_policy, tmp_path, monkeypatch):
+    """The sampling noise of the base policy (and of its exploration actor) is seeded per chunk and worker, not
+    taken from torch's global generator: killed after a chunk and resumed, a collection equals an uninterrupted
+    one row by row, whatever state torch's generator is in."""
+    import torchrl_dalir.data.collection as collection
+    from torchrl_dalir.training.policy import exploration_actor, policy_actor
+
+    monkeypatch.setattr(collection, "FRAMES_PER_WORKER", 8)  # gather every decision: no steps beyond the trajectories
+    path = str(trained_policy[1])
+    sources = [Source("exploration", 1, policy=partial(exploration_actor, path), expert=False, history=2),
+               Source("base_policy", 1, policy=partial(policy_actor, path), expert=False, history=2)]
+    kwargs = dict(seed=4, num_points=64, num_workers=1, chunk_size=1, progress=False)
+    torch.manual_seed(0)
+    reference = collect(TINY_REACH, tmp_path / "reference", sources, **kwargs)
+    collect_chunk = collection._collect_chunk
+
+    def killed_at_the_base_policy_chunk(spec, source, source_index, *args):
+        if source_index == 1:
+            raise KeyboardInterrupt
+        return collect_chunk(spec, source, source_index, *args)
+
+    monkeypatch.setattr(collection, "_collect_chunk", killed_at_the_base_policy_chunk)
+    torch.manual_seed(1)
+    with pytest.raises(KeyboardInterrupt):
+        collect(TINY_REACH, tmp_path / "resumed", sources, **kwargs)
+    monkeypatch.setattr(collection, "_collect_chunk", collect_chunk)
+    torch.manual_seed(2)  # the resumed process's global generator is in another state
+    resumed = collect(TINY_REACH, tmp_path / "resumed", sources, **kwargs)
+    assert (resumed.rows == reference.rows).all()
+    assert [s["chunk"] for s in resumed.meta.shards] == [0, 1]
+    actions = reference.rows[keys.ACTION]
+    low, high = action_bounds(TINY_REACH)
+    assert ((actions >= low) & (actions <= high)).all()
+
+
+class WildPolicy(torch.nn.Module):
+    """Writes actions far beyond the bounds, which the env clips to [1, -1, 1, -1]."""
+
+    def forward(self, td):
+        return td.set(keys.ACTION, torch.tensor([3.0, -3.0, 1.5, -7.0]).expand(*td.batch_size, 4))
+
+
+def test_stored_actions_are_the_executed_ones(tmp_path):
+    dataset = collect(TINY_REACH, tmp_path, [Source("wild", 1, policy=WildPolicy, expert=False)], num_points=32, num_workers=1, progress=False)
+    acting = ~dataset.rows[keys.IS_FINAL]
+    assert (dataset.rows[keys.ACTION][acting] == torch.tensor([1.0, -1.0, 1.0, -1.0])).all()
+
+
+def _synthetic_dataset(root, lengths=(3, 4)):
+    """A writer holding synthetic trajectories, one chunk each (no simulator), the same at every call."""
+    torch.manual_seed(0)
+    writer = DatasetWriter(root, DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[]))
+    for chunk, length in enumerate(lengths):
+        rows = trajectory_rows(synthetic_trajectory(length, True), trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.5)
+        writer.write_chunk(chunk, rows)
+    return writer
+
+
+def _sizes(root):
+    return {path: path.stat().st_size for path in sorted(root.rglob("*")) if path.is_file()}
+
+
+@pytest.mark.parametrize("damage", ["truncated column", "deleted column", "half-written meta.json", "invalid rows meta.json"])
+def test_a_damaged_dataset_is_refused_naming_the_file_and_left_unchanged(tmp_path, damage):
+    _synthetic_dataset(tmp_path).finalize()
+    column, meta, rows_meta = tmp_path / "rows" / "point_cloud.memmap", tmp_path / "meta.json", tmp_path / "rows" / "meta.json"
+    if damage == "truncated column":
+        column.write_bytes(column.read_bytes()[: column.stat().st_size // 2])
+        damaged, error = column, ValueError
+    elif damage == "deleted column":
+        column.unlink()
+        damaged, error = column, FileNotFoundError
+    elif damage == "half-written meta.json":
+        meta.write_text(meta.read_text()[:100])
+        damaged, error = meta, ValueError
+    else:
+        rows_meta.write_text('["not", "a", "tensordict"]')
+        damaged, error = rows_meta, ValueError
+    sizes = _sizes(tmp_path)
+    with pytest.raises(error, match=re.escape(str(damaged))):
+        TrajectoryDataset.load(tmp_path)
+    assert _sizes(tmp_path) == sizes  # the load grew or rewrote nothing
+
+
+def test_a_loaded_dataset_is_mapped_read_only(tmp_path):
+    dataset = _synthetic_dataset(tmp_path).finalize()
+    column = tmp_path / "rows" / "action.memmap"
+    before = column.read_bytes()
+    dataset.rows[keys.ACTION] += 1  # stays in memory
+    assert column.read_bytes() == before and torch.equal(TrajectoryDataset.load(tmp_path).rows[keys.ACTION] + 1, dataset.rows[keys.ACTION])
+
+
+def test_a_crash_before_the_complete_mark_resumes_to_the_complete_dataset(tmp_path, monkeypatch):
+    """Killed between the rename of ``rows/`` and the ``complete`` mark: the dataset is incomplete (not done, not
+    loadable), and opening it again finishes it with the same rows."""
+    reference = _synthetic_dataset(tmp_path / "reference").finalize()
+    write_meta = storage._write_meta
+
+    def crash_at_complete(root, meta):
+        if meta.complete:
+            raise KeyboardInterrupt
+        write_meta(root, meta)
+
+    monkeypatch.setattr(storage, "_write_meta", crash_at_complete)
+    root = tmp_path / "crashed"
+    with pytest.raises(KeyboardInterrupt):
+        _synthetic_dataset(root).finalize()
+    monkeypatch.setattr(storage, "_write_meta", write_meta)
+    assert (root / "rows").is_dir() and (root / "shards").is_dir() and not is_complete(root)
+    with pytest.raises(RuntimeError, match="incomplete"):
+        TrajectoryDataset.load(root)
+    writer = DatasetWriter(root, DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[]))
+    assert writer.done_chunks() == {0, 1}
+    resumed = writer.finalize()
+    assert is_complete(root) and (resumed.rows == reference.rows).all() and not (root / "shards").exists()
+
+
 def test_writer_finalizes_in_chunk_order(tmp_path):
-    from conftest import synthetic_trajectory
-
-    from torchrl_dalir.data import trajectory_rows
-
     meta = DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[])
     writer = DatasetWriter(tmp_path, meta)
     written = {}

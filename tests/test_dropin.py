@@ -117,7 +117,7 @@ def test_batched_envs_replan_each_entry_at_its_own_reset_in_rollouts_and_collect
 def test_reset_replays_the_same_actor_object(env):
     actor = receding_horizon(_dalir())
 
-    def run():
+    def run(actor=actor):
         return env.rollout(16, actor, auto_reset=False, tensordict=env.reset(seed=5), break_when_any_done=False)[keys.ACTION]
 
     first, second = run(), run()
@@ -126,9 +126,13 @@ def test_reset_replays_the_same_actor_object(env):
     assert torch.equal(run(), first)
     actor.reset(seed=4)
     assert not torch.equal(run(), first)
-    base = receding_horizon(actor.chunk_actor.policy)
-    with pytest.raises(ValueError, match="torch.manual_seed"):
-        base.reset(seed=0)
+    base = receding_horizon(actor.chunk_actor.policy)  # a base policy seeded this way draws from its own generator
+    base.reset(seed=0)
+    torch.manual_seed(1)
+    first = run(base)
+    base.reset()
+    torch.manual_seed(2)
+    assert torch.equal(run(base), first)
 
 
 def test_decision_outputs_are_kept_by_default(env):

@@ -109,3 +109,30 @@ def test_exploration_rollouts_join_the_world_models_data(tmp_path, monkeypatch):
     held = len(parts.held_out_trajectories)
     assert held == round(0.4 * (mixed.num_trajectories + 2))  # the split runs over both datasets' trajectories
     assert not (tmp_path / "calibration").exists()  # stopped after the world model
+
+
+def test_main_job_resumes_a_dataset_killed_before_its_complete_mark(tmp_path, monkeypatch, capsys):
+    """A kill between the rename of a dataset's rows and its ``complete`` mark leaves rows on disk but an incomplete
+    dataset: the main job does not count that stage as done, and the re-run finishes the dataset."""
+    from torchrl_dalir.data import TrajectoryDataset, storage
+
+    args = ["preset=smoke", "task=reach", f"out={tmp_path}", "until=demos", "collection.progress=false"]
+    write_meta = storage._write_meta
+
+    def killed_at_the_complete_mark(root, meta):
+        if meta.complete:
+            raise KeyboardInterrupt
+        write_meta(root, meta)
+
+    monkeypatch.setattr(storage, "_write_meta", killed_at_the_complete_mark)
+    with pytest.raises(KeyboardInterrupt):
+        run_example("train_dp3_wm.py", args, monkeypatch)
+    monkeypatch.setattr(storage, "_write_meta", write_meta)
+    demos = tmp_path / "data" / "reach" / "demos"
+    assert (demos / "rows").is_dir() and not storage.is_complete(demos)
+    capsys.readouterr()
+    run_example("train_dp3_wm.py", args, monkeypatch)
+    assert "done before" not in capsys.readouterr().out
+    assert TrajectoryDataset.load(demos).num_trajectories == 2
+    run_example("train_dp3_wm.py", args, monkeypatch)
+    assert "[demos] done before" in capsys.readouterr().out

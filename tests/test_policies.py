@@ -119,6 +119,27 @@ def test_diffusion_samples_stay_within_the_demo_action_range():
     assert (chunks >= low - 1e-5).all() and (chunks <= high + 1e-5).all()
 
 
+def test_policy_outputs_stay_within_the_env_action_bounds(trained_policy):
+    """Chunks are clamped, in env units, to the bounds the env clips actions to: what the policy outputs (and a
+    world model imagines) is what the simulator executes. ``load_policy`` sets the bounds of the policy's task."""
+    from torchrl_dalir.envs import action_bounds
+
+    low, high = action_bounds("reach")
+    loaded = load_policy(trained_policy[1])
+    assert torch.equal(loaded.action_low, low) and torch.equal(loaded.action_high, high)
+    assert "action_low" not in loaded.state_dict()  # the env's bounds, not weights: checkpoints are unchanged
+    policy = _policy("fm")
+    policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 10 - 5)  # demo actions beyond [-1, 1]
+    cond = policy.encode(_batch()[keys.POINT_CLOUD], _batch()[keys.AGENT_POS])
+    unbounded = policy.sample(cond, torch.Generator().manual_seed(0))
+    assert ((unbounded < low) | (unbounded > high)).any()
+    policy.set_action_bounds(low, high)
+    chunks = policy.sample(cond, torch.Generator().manual_seed(0))
+    assert ((chunks >= low) & (chunks <= high)).all() and torch.equal(chunks, unbounded.clamp(low, high))
+    with pytest.raises(ValueError, match="low <= high"):
+        policy.set_action_bounds(high, low)
+
+
 def test_receding_horizon_executes_chunk_entries_1_to_8_and_replans_every_8_steps():
     from tensordict.nn import TensorDictModule
     from torchrl.envs import SerialEnv

@@ -245,13 +245,17 @@ def test_dropout_policy_samples_a_dropout_candidate_and_leaves_the_observation_c
     policy, *_ = _parts()
     obs = _observation(batch=2)
     clean = obs[keys.POINT_CLOUD].clone()
-    torch.manual_seed(3)
-    chunk = DropoutPolicy(policy, 0.3, seed=7)(obs.clone())[keys.ACTION_CHUNK]
-    keep = PointDropout(0.3, seed=7).keep_masks((2, 2, 40))
-    torch.manual_seed(3)
-    expected = policy.sample(policy.encode(clean, obs[keys.AGENT_POS], keep))
-    assert torch.equal(chunk, expected)
-    torch.manual_seed(3)
-    assert not torch.equal(chunk, policy.sample(policy.encode(clean, obs[keys.AGENT_POS])))  # the mask mattered
+    explorer = DropoutPolicy(policy, 0.3, seed=7)
+    chunk = explorer(obs.clone())[keys.ACTION_CHUNK]
+    generator = torch.Generator().manual_seed(7)  # the masks, then the noise, from the seed's one stream
+    keep = PointDropout(0.3).keep_masks((2, 2, 40), generator)
+    assert torch.equal(chunk, policy.sample(policy.encode(clean, obs[keys.AGENT_POS], keep), generator))
+    generator = torch.Generator().manual_seed(7)
+    PointDropout(0.3).keep_masks((2, 2, 40), generator)
+    assert not torch.equal(chunk, policy.sample(policy.encode(clean, obs[keys.AGENT_POS]), generator))  # the mask mattered
+    torch.manual_seed(3)  # torch's global generator plays no part: reset replays
+    assert not torch.equal(explorer(obs.clone())[keys.ACTION_CHUNK], chunk)
+    explorer.reset()
+    assert torch.equal(explorer(obs.clone())[keys.ACTION_CHUNK], chunk)
     out = DropoutPolicy(policy, 0.3)(obs)
     assert torch.equal(out[keys.POINT_CLOUD], clean)

@@ -5,7 +5,9 @@ trajectories). Each source is split into chunks; a chunk is collected by a Torch
 ``MultiSyncCollector`` whose workers each step one env and one copy of the policy (rendering
 and acting stay in the worker; this process only gathers), and is stored as soon as it is
 finished, so an interrupted collection resumes at its first unfinished chunk and gives the
-same data as an uninterrupted one.
+same data as an uninterrupted one: every random stream of a chunk (env, drift noise, the
+policy's sampling) is seeded from the chunk's seed, never taken from the process's state.
+Stored actions are the executed ones, clipped to the env's action bounds.
 """
 
 from __future__ import annotations
@@ -25,13 +27,14 @@ from tqdm.auto import tqdm
 from torchrl_dalir import keys
 from torchrl_dalir.data.labels import trajectory_rows
 from torchrl_dalir.data.storage import DatasetMeta, DatasetWriter, TrajectoryDataset
-from torchrl_dalir.envs import TaskSpec, get_task, make_env
+from torchrl_dalir.envs import TaskSpec, action_bounds, get_task, make_env
 from torchrl_dalir.experts import add_drift_noise, make_expert
 from torchrl_dalir.seeds import check_data_seed
 
 SEEDS_PER_DATASET = 1_000_000  # chunk c of dataset seed s seeds its envs with s * 1e6 + c * 1e3 (+ worker)
 SEEDS_PER_CHUNK = 1_000
 FRAMES_PER_WORKER = 64  # env steps per worker between two gathers
+POLICY_SEED_OFFSET = 1 << 40  # a worker's policy samples from its seed + this: a stream apart from its drift noise's
 
 
 @dataclass
@@ -44,6 +47,8 @@ class Source:
         noise_scale: drift-noise scale added to the policy's actions (0 for none).
         policy: a picklable factory (a module-level function or a ``functools.partial``) that returns
             a TorchRL policy; each collector worker calls it once. ``None`` uses the task's expert.
+            A policy with a ``reset(seed)`` method (the base policies and their actors) is seeded
+            per chunk and worker; any other one must not draw from torch's global generator.
         expert: whether the clean policy is the expert; its noise-free successes are tagged
             ``expert``, every other success ``imperfect_success``.
         history: the observation history the policy reads (2 for the base policies). The env
@@ -80,8 +85,11 @@ def newest_frame(trajectory: TensorDictBase) -> TensorDictBase:
 
 
 def _source_policy(task: TaskSpec, source: Source, noise_correlation: float, seed: int):
-    """The policy of ``source``, with its drift noise seeded by ``seed`` (one call per worker)."""
+    """The policy of ``source``, its sampling noise and its drift noise seeded from ``seed`` (one call
+    per worker), so that a chunk does not depend on what ran before it in the process."""
     policy = source.policy() if source.policy is not None else make_expert(task)
+    if callable(getattr(policy, "reset", None)):
+        policy.reset(seed + POLICY_SEED_OFFSET)
     if source.noise_scale > 0:
         policy = add_drift_noise(policy, source.noise_scale, noise_correlation, seed=seed)
     return policy
@@ -175,6 +183,7 @@ def _collect_chunk(spec, source, source_index, count, chunk_seed, cfg, bar):
     """Collects ``count`` kept trajectories of one source; worker ``w`` seeds its env and its
     noise with ``chunk_seed + w``, so a chunk is the same whenever it is collected."""
     workers = cfg["num_workers"]
+    low, high = action_bounds(spec)
     env_fns = [partial(_worker_env, spec, chunk_seed + w, cfg["num_points"], source.history) for w in range(workers)]
     policy_fns = [partial(_source_policy, spec, source, cfg["noise_correlation"], chunk_seed + w) for w in range(workers)]
     frames = FRAMES_PER_WORKER * workers
@@ -191,6 +200,7 @@ def _collect_chunk(spec, source, source_index, count, chunk_seed, cfg, bar):
             for worker in range(workers):
                 for trajectory in split_completed(pieces[worker], batch[worker]):
                     trajectory = newest_frame(trajectory)
+                    trajectory[keys.ACTION] = trajectory[keys.ACTION].clamp(low, high)  # what the simulator executed
                     steps += len(trajectory)
                     rows = trajectory_rows(
                         trajectory, trajectory_id=len(kept), source=source_index, noise_scale=source.noise_scale,

@@ -8,7 +8,10 @@ A dataset is a directory::
 
 Every shard and ``rows/`` is written under a temporary name and renamed into place, and
 ``meta.json`` is replaced atomically after each, so a crash leaves a dataset that resumes from
-its last finished chunk and never one that loads as complete.
+its last finished chunk and never one that loads as complete: a dataset is complete only once
+``meta.json`` says so (:func:`is_complete`). Loading checks every column file against the stored
+shapes and maps it read-only, so a damaged dataset is refused with the damaged file named and
+is never modified.
 """
 
 from __future__ import annotations
@@ -56,11 +59,63 @@ class DatasetMeta:
         return {k: getattr(self, k) for k in ("task", "num_points", "gamma", "seed", "sources", "format_version")}
 
 
+def _read_json(path: Path) -> dict:
+    """The JSON object in ``path``; a half-written or invalid file is refused with its path."""
+    try:
+        content = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path} is damaged (not valid JSON: {error}); delete its dataset directory and collect it again") from None
+    if not isinstance(content, dict):
+        raise ValueError(f"{path} is damaged (holds a {type(content).__name__}, not a JSON object); delete its dataset directory and collect it again")
+    return content
+
+
 def _read_meta(root: Path) -> DatasetMeta:
     path = root / "meta.json"
     if not path.exists():
         raise FileNotFoundError(f"no dataset at {root}: {path} is missing")
-    return DatasetMeta(**json.loads(path.read_text()))
+    content = _read_json(path)
+    try:
+        return DatasetMeta(**content)
+    except TypeError as error:
+        raise ValueError(f"{path} is not a dataset's meta.json ({error}); delete {root} and collect it again") from None
+
+
+def is_complete(root: str | Path) -> bool:
+    """Whether ``root`` holds a complete dataset (its ``meta.json`` says so): a stage that collects it is done
+    only then; an incomplete one is resumed by running the same collection again."""
+    root = Path(root)
+    return (root / "meta.json").exists() and _read_meta(root).complete
+
+
+def _open_columns(directory: Path, num_rows: int) -> TensorDict:
+    """The columns of a memory-mapped TensorDict directory, each checked against the shape and dtype that its
+    ``meta.json`` records (present, ``num_rows`` rows, the file's size) and mapped read-only (copy-on-write), so
+    a load never grows or modifies a file."""
+    columns = {}
+    for key, entry in _read_json(directory / "meta.json").items():
+        if not isinstance(entry, dict):  # the batch size, device and type of the TensorDict
+            continue
+        dtype = getattr(torch, str(entry.get("dtype", "")).removeprefix("torch."), None)
+        if not isinstance(dtype, torch.dtype) or "shape" not in entry or entry.get("is_nested") or "type" in entry:
+            raise ValueError(f"{directory / 'meta.json'} describes {key!r} as {entry}, not a column of this library's datasets")
+        shape = torch.Size(entry["shape"])
+        path = directory / f"{key}.memmap"
+        if not shape or shape[0] != num_rows:
+            raise ValueError(f"{path} holds {tuple(shape)} values; its dataset's meta.json records {num_rows} rows")
+        if shape.numel() == 0:  # tensordict writes no file for an empty column
+            columns[key] = torch.empty(shape, dtype=dtype)
+            continue
+        if not path.is_file():
+            raise FileNotFoundError(f"{path} is missing: the dataset is damaged; delete {directory.parent} and collect it again")
+        expected, size = shape.numel() * dtype.itemsize, path.stat().st_size
+        if size != expected:
+            raise ValueError(
+                f"{path} has {size} bytes, but its {tuple(shape)} {dtype} column needs {expected} (a truncated or damaged "
+                f"file); delete {directory.parent} and collect it again"
+            )
+        columns[key] = torch.from_file(str(path), shared=False, size=shape.numel(), dtype=dtype).view(shape)
+    return TensorDict(columns, batch_size=[num_rows])
 
 
 def _write_meta(root: Path, meta: DatasetMeta) -> None:
@@ -97,10 +152,13 @@ class DatasetWriter:
                     f"  on disk:   {existing.plan()}\n  requested: {meta.plan()}\n"
                     "choose another directory, or delete this one to start over"
                 )
-            meta = existing
-        self.root.mkdir(parents=True, exist_ok=True)
-        self.meta = meta
-        _write_meta(self.root, meta)
+            self.meta = existing
+            if existing.complete:  # finishes a finalize interrupted after the complete mark
+                shutil.rmtree(self.root / "shards", ignore_errors=True)
+        else:
+            self.root.mkdir(parents=True, exist_ok=True)
+            self.meta = meta
+            _write_meta(self.root, meta)
 
     def done_chunks(self) -> set[int]:
         return {s["chunk"] for s in self.meta.shards}
@@ -115,7 +173,7 @@ class DatasetWriter:
     def finalize(self) -> TrajectoryDataset:
         """Joins the shards into ``rows/`` in chunk order, renumbers trajectories, marks complete."""
         shards = sorted(self.meta.shards, key=lambda s: s["chunk"])
-        rows = torch.cat([TensorDict.load_memmap(self.root / "shards" / f"{s['chunk']:05d}") for s in shards])
+        rows = torch.cat([_open_columns(self.root / "shards" / f"{s['chunk']:05d}", s["num_rows"]) for s in shards])
         rows[keys.TRAJECTORY_ID] = torch.cumsum(rows[keys.STEP] == 0, 0) - 1
         _memmap_atomically(rows, self.root / "rows")
         self.meta.shards = shards
@@ -144,7 +202,8 @@ class TrajectoryDataset:
     def load(
         cls, root: str | Path, *, task: str | None = None, num_points: int | None = None
     ) -> TrajectoryDataset:
-        """Loads a complete dataset; refuses an unfinished one, or one of another task or shape."""
+        """Loads a complete dataset; refuses an unfinished or damaged one (naming the damaged file), or one of
+        another task or shape. Nothing on disk is modified."""
         root = Path(root)
         meta = _read_meta(root)
         if not meta.complete:
@@ -158,7 +217,7 @@ class TrajectoryDataset:
             raise ValueError(f"the dataset at {root} is for task {meta.task!r}, not {task!r}")
         if num_points is not None and meta.num_points != num_points:
             raise ValueError(f"the dataset at {root} has {meta.num_points} points per cloud, not {num_points}")
-        rows = TensorDict.load_memmap(root / "rows")
+        rows = _open_columns(root / "rows", meta.num_rows)
         if keys.POINT_CLOUD in rows.keys() and rows[keys.POINT_CLOUD].shape[-2:] != (meta.num_points, 3):
             raise ValueError(f"{root}: point clouds of shape {tuple(rows[keys.POINT_CLOUD].shape[-2:])} contradict meta.json")
         return cls(root, meta, rows)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import cache
+
 import torch
 from torchrl.data import Categorical, Composite
 from torchrl.envs import CatFrames, EnvBase, GymWrapper, InitTracker, ParallelEnv, TransformedEnv, UnsqueezeTransform
@@ -69,6 +71,23 @@ def make_env(
     if seed is not None:
         env.set_seed(seed)
     return env
+
+
+def action_bounds(task: str | TaskSpec) -> tuple[torch.Tensor, torch.Tensor]:
+    """The bounds ``low``, ``high`` ``[A]`` that ``task``'s simulator clips every action to (its action
+    space, the env's ``action_spec``): an action beyond them is executed clipped."""
+    low, high = _action_space_bounds(get_task(task))
+    return low.clone(), high.clone()
+
+
+@cache
+def _action_space_bounds(task: TaskSpec) -> tuple[torch.Tensor, torch.Tensor]:
+    simulator = make_simulator(task)  # once per process and task
+    try:
+        space = simulator.action_space
+        return torch.as_tensor(space.low, dtype=torch.float32), torch.as_tensor(space.high, dtype=torch.float32)
+    finally:
+        simulator.close()
 
 
 def env_task(env: EnvBase) -> str | None:

@@ -4,7 +4,8 @@ Both read a 2-step history of ``point_cloud`` ``[..., To, N, 3]`` and ``agent_po
 ``[..., To, D]`` (with or without batch dimensions) and write ``action_chunk`` ``[..., H, A]``;
 they differ only in how a chunk is generated from noise (:meth:`ChunkPolicy3D.generate`).
 Inputs and outputs are in the env's units; min-max normalizers fitted on the demos live inside
-the module and are saved with it.
+the module and are saved with it. Chunks are clamped to the env's action bounds (set by
+``load_policy``), so they hold the actions the simulator executes.
 """
 
 from __future__ import annotations
@@ -81,6 +82,11 @@ class ChunkPolicy3D(TensorDictModuleBase):
         self.point_normalizer = MinMaxNormalizer(3)
         self.state_normalizer = MinMaxNormalizer(state_dim)
         self.action_normalizer = MinMaxNormalizer(action_dim)
+        # the bounds the env clips actions to (unbounded until set_action_bounds); not saved, they are the env's
+        self.register_buffer("action_low", torch.full((action_dim,), -torch.inf), persistent=False)
+        self.register_buffer("action_high", torch.full((action_dim,), torch.inf), persistent=False)
+        self.generator: torch.Generator | None = None  # the sampling noise's own stream (see reset); None: torch's global one
+        self.seed: int | None = None
         self.point_encoder = PointCloudEncoder(tuple(config.point_hidden), config.point_out)
         self.state_encoder = StateEncoder(state_dim, out_dim=config.state_out)
         self.cond_dim = config.obs_steps * (config.point_out + config.state_out)
@@ -94,6 +100,25 @@ class ChunkPolicy3D(TensorDictModuleBase):
         self.point_normalizer.fit(point_cloud)
         self.state_normalizer.fit(agent_pos)
         self.action_normalizer.fit(action)
+
+    def set_action_bounds(self, low: torch.Tensor, high: torch.Tensor) -> None:
+        """The bounds ``[A]`` the env clips every action to: sampled chunks are clamped to them (in env units), so
+        a chunk, and what a world model imagines from it, is what the simulator will execute."""
+        low, high = torch.as_tensor(low, dtype=torch.float32), torch.as_tensor(high, dtype=torch.float32)
+        if low.shape != (self.action_dim,) or high.shape != (self.action_dim,) or not (low <= high).all():
+            raise ValueError(f"action bounds must be two [{self.action_dim}] tensors with low <= high, got {low} and {high}")
+        self.action_low.copy_(low)
+        self.action_high.copy_(high)
+
+    def reset(self, seed: int | None = None) -> None:
+        """With ``seed``, the sampling noise comes from the policy's own generator seeded with it, so the same
+        observations give the same chunks whatever else draws from torch's global generator (a collection seeds
+        each worker's policy this way); without, that generator restarts from its last seed (if it has none, the
+        noise keeps coming from torch's global generator)."""
+        if seed is not None:
+            self.seed = seed
+        if self.seed is not None:
+            self.generator = torch.Generator().manual_seed(self.seed)
 
     # -- observation -> condition ------------------------------------------------------------
     def check_observation(
@@ -172,8 +197,10 @@ class ChunkPolicy3D(TensorDictModuleBase):
         raise NotImplementedError
 
     def sample(self, cond: torch.Tensor, generator: torch.Generator | None = None, noise: torch.Tensor | None = None) -> torch.Tensor:
-        """Chunks ``[..., H, A]`` in env units, one per condition ``[..., C]``; batch many
-        conditions (e.g. 32 candidates) into one call."""
+        """Chunks ``[..., H, A]`` in env units within the action bounds, one per condition ``[..., C]``; batch
+        many conditions (e.g. 32 candidates) into one call. The noise comes from ``generator``, by default the
+        policy's own (see :meth:`reset`)."""
+        generator = generator if generator is not None else self.generator
         batch_shape = cond.shape[:-1]
         flat = cond.reshape(-1, cond.shape[-1])
         shape = (flat.shape[0], self.config.horizon, self.action_dim)
@@ -183,7 +210,8 @@ class ChunkPolicy3D(TensorDictModuleBase):
         elif noise.shape != (*batch_shape, *shape[1:]):
             raise ValueError(f"noise must be {(*batch_shape, *shape[1:])} (one chunk per condition), got {tuple(noise.shape)}")
         chunk = self.generate(flat, noise.reshape(shape).to(cond.dtype))
-        return self.action_normalizer.unnormalize(chunk).reshape(*batch_shape, *shape[1:])
+        chunk = self.action_normalizer.unnormalize(chunk).clamp(self.action_low, self.action_high)
+        return chunk.reshape(*batch_shape, *shape[1:])
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase, generator: torch.Generator | None = None) -> TensorDictBase:

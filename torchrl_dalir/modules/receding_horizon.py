@@ -101,8 +101,8 @@ class RecedingHorizonActor(MultiStepActorWrapper):
     def reset(self, seed: int | None = None) -> None:
         """Forgets every plan and restarts the wrapped actor's own random stream (its ``reset``,
         e.g. :meth:`RerankingActor.reset <torchrl_dalir.reranking.RerankingActor.reset>`), so the
-        same object replays its episodes. A base policy draws from torch's global generator:
-        seed that with ``torch.manual_seed``."""
+        same object replays its episodes. A base policy draws from torch's global generator until
+        it is given a seed here (:meth:`ChunkPolicy3D.reset <torchrl_dalir.modules.ChunkPolicy3D.reset>`)."""
         self._plan = self._counter = None
         restart = getattr(self.chunk_actor, "reset", None)
         if restart is not None:

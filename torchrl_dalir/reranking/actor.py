@@ -53,7 +53,8 @@ class RerankingActor(TensorDictModuleBase):
             :meth:`from_checkpoints` uses the rule stored in the world-model checkpoint by
             ``examples/calibrate_selection.py`` unless one is passed.
         common_noise: candidate 0 is sampled exactly as the base policy samples (its own network
-            call, its noise from torch's global generator) instead of with ``seed``'s noise in the
+            call, its noise from the policy's own stream: torch's global generator unless the
+            policy was seeded with its ``reset``) instead of with ``seed``'s noise in the
             candidates' batch (common random numbers): a rule that keeps the clean candidate then
             replays the base policy's episodes, so a paired comparison sees only the decisions
             where the rule switched (the evaluation functions' default). Costs one more batch-1
@@ -107,7 +108,7 @@ class RerankingActor(TensorDictModuleBase):
     def reset(self, seed: int | None = None) -> None:
         """Restarts candidates and choices from ``seed`` (by default the actor's own ``seed``), so the same object
         replays its decisions. With ``common_noise``, seed torch too (``torch.manual_seed``): the clean candidate
-        draws from its global generator."""
+        draws from its global generator (unless the policy has its own, see ``ChunkPolicy3D.reset``)."""
         if seed is not None:
             self.seed = seed
         self.generator.manual_seed(self.seed)

@@ -107,7 +107,7 @@ class DropoutPolicy(TensorDictModuleBase):
     Args:
         policy: the frozen base policy.
         p: the point-dropout probability (DALI-R's).
-        seed: seeds the dropout masks.
+        seed: seeds the dropout masks and the policy's sampling noise (one generator for both).
     """
 
     in_keys = [keys.POINT_CLOUD, keys.AGENT_POS]
@@ -115,10 +115,16 @@ class DropoutPolicy(TensorDictModuleBase):
 
     def __init__(self, policy, p: float = 0.2, seed: int = 0):
         super().__init__()
-        self.policy, self.dropout = policy, PointDropout(p, seed)
+        self.policy, self.dropout, self.seed = policy, PointDropout(p, seed), seed
+
+    def reset(self, seed: int | None = None) -> None:
+        """Restarts masks and noise from ``seed`` (by default the last one), so the same episodes replay."""
+        if seed is not None:
+            self.seed = seed
+        self.dropout.generator.manual_seed(self.seed)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         cloud, agent_pos = self.policy.read_observation(tensordict, self.in_keys)
         keep = self.dropout.keep_masks(cloud.shape[:-1]).to(cloud.device)
         cond = self.policy.condition(self.policy.point_features(cloud), agent_pos, keep)  # checked by read_observation
-        return tensordict.set(self.out_keys[0], self.policy.sample(cond))
+        return tensordict.set(self.out_keys[0], self.policy.sample(cond, self.dropout.generator))

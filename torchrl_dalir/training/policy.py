@@ -15,6 +15,7 @@ from torchrl_dalir import keys
 from torchrl_dalir.config import check_at_least, check_choice, config_dict
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
+from torchrl_dalir.envs.make_env import action_bounds
 from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.modules import ChunkPolicy3D, PolicyConfig, make_policy
 from torchrl_dalir.modules.config import POLICY_KINDS
@@ -155,6 +156,7 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", task: str 
     policy.num_points = state["num_points"]  # the cloud size it was trained on
     policy.task = state["task"]
     policy.checkpoint = str(path)
+    policy.set_action_bounds(*action_bounds(state["task"]))  # its chunks hold what the env executes
     return policy.to(device).eval()
 
 
