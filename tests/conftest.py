@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import pytest
@@ -49,6 +50,26 @@ def synthetic_trajectory(num_actions: int, success: bool, num_points: int = 8, a
         },
         batch_size=[num_actions],
     )
+
+
+@contextlib.contextmanager
+def killed_at_the_complete_mark():
+    """Inside, writing a dataset's ``complete`` mark raises ``KeyboardInterrupt``: a kill between
+    the rename of its rows and the mark."""
+    from torchrl_dalir.data import storage
+
+    write_meta = storage._write_meta
+
+    def killed(root, meta):
+        if meta.complete:
+            raise KeyboardInterrupt
+        write_meta(root, meta)
+
+    storage._write_meta = killed
+    try:
+        yield
+    finally:
+        storage._write_meta = write_meta
 
 
 @pytest.fixture(scope="session")

@@ -5,10 +5,10 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import SHORT_REACH, still_policy, synthetic_trajectory
+from conftest import SHORT_REACH, killed_at_the_complete_mark, still_policy, synthetic_trajectory
 
 from torchrl_dalir import keys
-from torchrl_dalir.data import DatasetWriter, Source, TrajectoryDataset, collect, storage, trajectory_rows
+from torchrl_dalir.data import DatasetWriter, Source, TrajectoryDataset, collect, trajectory_rows
 from torchrl_dalir.data.storage import DatasetMeta, is_complete
 from torchrl_dalir.envs import action_bounds
 
@@ -194,22 +194,13 @@ def test_a_loaded_dataset_is_mapped_read_only(tmp_path):
     assert column.read_bytes() == before and torch.equal(TrajectoryDataset.load(tmp_path).rows[keys.ACTION] + 1, dataset.rows[keys.ACTION])
 
 
-def test_a_crash_before_the_complete_mark_resumes_to_the_complete_dataset(tmp_path, monkeypatch):
+def test_a_crash_before_the_complete_mark_resumes_to_the_complete_dataset(tmp_path):
     """Killed between the rename of ``rows/`` and the ``complete`` mark: the dataset is incomplete (not done, not
     loadable), and opening it again finishes it with the same rows."""
     reference = _synthetic_dataset(tmp_path / "reference").finalize()
-    write_meta = storage._write_meta
-
-    def crash_at_complete(root, meta):
-        if meta.complete:
-            raise KeyboardInterrupt
-        write_meta(root, meta)
-
-    monkeypatch.setattr(storage, "_write_meta", crash_at_complete)
     root = tmp_path / "crashed"
-    with pytest.raises(KeyboardInterrupt):
+    with killed_at_the_complete_mark(), pytest.raises(KeyboardInterrupt):
         _synthetic_dataset(root).finalize()
-    monkeypatch.setattr(storage, "_write_meta", write_meta)
     assert (root / "rows").is_dir() and (root / "shards").is_dir() and not is_complete(root)
     with pytest.raises(RuntimeError, match="incomplete"):
         TrajectoryDataset.load(root)

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import killed_at_the_complete_mark
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -117,17 +118,8 @@ def test_main_job_resumes_a_dataset_killed_before_its_complete_mark(tmp_path, mo
     from torchrl_dalir.data import TrajectoryDataset, storage
 
     args = ["preset=smoke", "task=reach", f"out={tmp_path}", "until=demos", "collection.progress=false"]
-    write_meta = storage._write_meta
-
-    def killed_at_the_complete_mark(root, meta):
-        if meta.complete:
-            raise KeyboardInterrupt
-        write_meta(root, meta)
-
-    monkeypatch.setattr(storage, "_write_meta", killed_at_the_complete_mark)
-    with pytest.raises(KeyboardInterrupt):
+    with killed_at_the_complete_mark(), pytest.raises(KeyboardInterrupt):
         run_example("train_dp3_wm.py", args, monkeypatch)
-    monkeypatch.setattr(storage, "_write_meta", write_meta)
     demos = tmp_path / "data" / "reach" / "demos"
     assert (demos / "rows").is_dir() and not storage.is_complete(demos)
     capsys.readouterr()
