@@ -62,7 +62,9 @@ def make_renderer(model: mujoco.MjModel, image_size: int) -> mujoco.Renderer:
 
 
 class RGBCamera:
-    """Renders RGB images ``[size, size, 3]`` (uint8) from one MuJoCo camera, for videos.
+    """Renders RGB images ``[size, size, 3]`` (uint8) from one MuJoCo camera, for videos, with the
+    world's up towards the top: the image of a camera mounted upside down (MetaWorld's ``corner2``)
+    is turned half a turn.
 
     Create it inside the process that uses it, like :class:`DepthPointCloudCamera`.
 
@@ -74,6 +76,7 @@ class RGBCamera:
 
     def __init__(self, model: mujoco.MjModel, camera: str, size: int):
         self.camera = camera
+        self.cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
         self.renderer = make_renderer(model, size)
         _track(self)
 
@@ -84,7 +87,9 @@ class RGBCamera:
 
     def __call__(self, data: mujoco.MjData) -> np.ndarray:
         self.renderer.update_scene(data, camera=self.camera)
-        return self.renderer.render()
+        image = self.renderer.render()
+        up = data.cam_xmat[self.cam_id].reshape(3, 3)[:, 1]  # the camera's up axis in the world frame
+        return np.ascontiguousarray(image[::-1, ::-1]) if up[2] < 0 else image
 
 
 class DepthPointCloudCamera:
