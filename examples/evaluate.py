@@ -4,10 +4,12 @@
     python examples/evaluate.py policy=.../checkpoint.pt world_model=.../world_model.pt episodes=100
     python examples/evaluate.py policy=... world_model=... methods=[random]   # the random-choice control
     python examples/evaluate.py policy=... world_model=... methods=[dalir] selection.rule=argmax   # another rule
+    python examples/evaluate.py policy=... world_model=... video=2   # GIFs of the first 2 episodes of each method
 
 Prints a table and writes ``<out>/evaluation.json`` (rates and per-episode records) and
 ``<out>/evaluation.csv`` (one row per method and episode; DALI-R's rows also describe its choices,
-see ``evaluation.compare.decision_summary``).
+see ``evaluation.compare.decision_summary``); with ``video=n``, ``<out>/videos/<method>_episode_<i>.gif``
+of the first ``n`` episodes of each method (the same episodes for each).
 """
 
 from __future__ import annotations
@@ -38,9 +40,10 @@ class Config:
     selection: SelectionConfig | None = None  # DALI-R's rule (selection.rule=argmax ...); default: the checkpoint's
     common_noise: bool = True  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
     out: str = "outputs/evaluation"
+    video: int = 0  # record the first <video> episodes of each method as GIFs under <out>/videos/
 
     def __post_init__(self):
-        check_evaluation_settings(self.episodes, self.seed, self.num_candidates, self.dropout)
+        check_evaluation_settings(self.episodes, self.seed, self.num_candidates, self.dropout, video=self.video)
 
 
 def main(argv: list[str]) -> None:
@@ -49,7 +52,7 @@ def main(argv: list[str]) -> None:
     rows = evaluate_checkpoints(
         cfg.policy, cfg.world_model, episodes=cfg.episodes, seed=cfg.seed, device=cfg.device,
         num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed, methods=cfg.methods,
-        selection=cfg.selection, common_noise=cfg.common_noise,
+        selection=cfg.selection, common_noise=cfg.common_noise, video=cfg.video, video_dir=out / "videos",
     )
     print(f"\n{'method':16s} {'success':>8s} {'episodes':>9s} {'seconds':>8s}")
     for name, row in rows.items():

@@ -14,6 +14,7 @@ DONE = "done"
 TERMINATED = "terminated"
 TRUNCATED = "truncated"
 IS_INIT = "is_init"  # written by TorchRL's InitTracker at episode starts
+PIXELS = "pixels"  # [..., H, W, 3] uint8, an RGB render from the task's camera (make_env(..., pixels=size), for videos)
 
 # Dataset (one row per observation of a stored trajectory).
 COMPLETION_TARGET = "completion_target"  # [...] float32, y_t = gamma^(T - t) * y_T
@@ -35,3 +36,7 @@ FUTURE = "future"  # sub-tensordict: the observation k steps ahead (the world mo
 LATENT = "latent"  # [..., L] s_t of a frozen latent encoder, precomputed once
 FUTURE_MASK = "future_is_pad"  # [...] bool, the episode ended before t + k: the final observation stands in
 IMAGINED_LATENT = "imagined_latent"  # [..., L] s_hat_{t+k} = s_t + W(s_t, a_{t:t+k}) of a recorded chunk
+
+# Latent imagination (the TensorDict modules of torchrl_dalir.modules.world_model).
+COMPLETION_LOGIT = "completion_logit"  # [...] the scorer's logit of eventual task completion (sigmoid: its probability)
+MEMBER_LOGITS = "member_logits"  # [..., E] the completion logit of each scorer-ensemble member

@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 
 from torchrl_dalir import keys
-from torchrl_dalir.envs.point_cloud import DepthPointCloudCamera
+from torchrl_dalir.envs.point_cloud import DepthPointCloudCamera, RGBCamera
 from torchrl_dalir.envs.tasks import METAWORLD, TaskSpec
 
 
@@ -96,14 +96,17 @@ class PointCloudObservation(gym.Wrapper):
 
     ``info["success"]`` becomes a bool and the episode terminates at the first success. The
     depth camera is created at the first reset, in the process that steps the env. With
-    ``render=False`` there is no point cloud: a state-only env, ~10x faster, for experts.
+    ``render=False`` there is no point cloud: a state-only env, ~10x faster, for experts. With
+    ``pixels > 0``, ``pixels`` holds an RGB render ``[pixels, pixels, 3]`` from the same camera (for
+    videos; none by default).
     """
 
-    def __init__(self, env: gym.Env, task: TaskSpec, num_points: int = 512, render: bool = True):
+    def __init__(self, env: gym.Env, task: TaskSpec, num_points: int = 512, render: bool = True, pixels: int = 0):
         super().__init__(env)
         self.task = task
         self.num_points = num_points
         self.render_points = render
+        self.pixels = pixels
         state_dim = len(task.privileged_state(env.unwrapped, env.observation_space.sample()))
         unbounded = dict(low=-np.inf, high=np.inf, dtype=np.float32)
         spaces = {
@@ -112,8 +115,11 @@ class PointCloudObservation(gym.Wrapper):
         }
         if render:
             spaces[keys.POINT_CLOUD] = gym.spaces.Box(shape=(num_points, 3), **unbounded)
+        if pixels:
+            spaces[keys.PIXELS] = gym.spaces.Box(0, 255, shape=(pixels, pixels, 3), dtype=np.uint8)
         self.observation_space = gym.spaces.Dict(spaces)
         self._camera: DepthPointCloudCamera | None = None
+        self._rgb_camera: RGBCamera | None = None
 
     def _observation(self, state: np.ndarray) -> dict[str, np.ndarray]:
         raw = self.env.unwrapped
@@ -131,6 +137,10 @@ class PointCloudObservation(gym.Wrapper):
             observation[keys.POINT_CLOUD] = self._camera(raw.data)
             if first:
                 _warn_if_points_repeat(self.task, self.num_points, self._camera.points_in_crop)
+        if self.pixels:
+            if self._rgb_camera is None:
+                self._rgb_camera = RGBCamera(raw.model, self.task.camera, self.pixels)
+            observation[keys.PIXELS] = self._rgb_camera(raw.data)
         return observation
 
     def reset(self, *, seed=None, options=None):
@@ -167,7 +177,8 @@ class PointCloudObservation(gym.Wrapper):
             limit._elapsed_steps = state.elapsed_steps
 
     def close(self):
-        if self._camera is not None:
-            self._camera.close()
-            self._camera = None
+        for camera in (self._camera, self._rgb_camera):
+            if camera is not None:
+                camera.close()
+        self._camera = self._rgb_camera = None
         super().close()

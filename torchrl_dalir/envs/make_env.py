@@ -23,6 +23,7 @@ def make_env(
     num_points: int = 512,
     render: bool = True,
     history: int = 1,
+    pixels: int = 0,
     device: str | torch.device = "cpu",
 ) -> EnvBase:
     """Builds a TorchRL env for a benchmark task (``door``, ``pen``, ``disassemble``, ...).
@@ -47,6 +48,9 @@ def make_env(
         history: with ``history > 1``, ``point_cloud`` and ``agent_pos`` carry the last
             ``history`` observations (``[history, N, 3]``, ``[history, D]``), stacked by TorchRL's
             ``CatFrames`` (the first observation repeats at an episode start, as DP3 pads).
+        pixels: with ``pixels > 0``, ``pixels`` holds an RGB render ``[pixels, pixels, 3]`` (uint8)
+            from the task's camera at every step, for videos (TorchRL's ``VideoRecorder`` reads it;
+            see :mod:`torchrl_dalir.evaluation.video`). ``0`` (the default) renders none.
         device: where the env's tensors live.
 
     Example:
@@ -58,8 +62,9 @@ def make_env(
     """
     check_at_least("num_points", num_points, 1)
     check_at_least("history", history, 1)
+    check_at_least("pixels", pixels, 0)
     spec = get_task(task)
-    env = GymWrapper(PointCloudObservation(make_simulator(spec), spec, num_points, render), device=device)
+    env = GymWrapper(PointCloudObservation(make_simulator(spec), spec, num_points, render, pixels), device=device)
     success_spec = Composite({keys.SUCCESS: Categorical(2, shape=(1,), dtype=torch.bool, device=device)})
     env.set_info_dict_reader(default_info_dict_reader([keys.SUCCESS], spec=success_spec))
     env = TransformedEnv(env, InitTracker())

@@ -46,6 +46,52 @@ def _track(camera) -> None:
     _OPEN_CAMERAS.add(camera)
 
 
+def make_renderer(model: mujoco.MjModel, image_size: int) -> mujoco.Renderer:
+    """An offscreen renderer of square ``image_size`` images, on the requested GL backend; fails
+    with what to install when there is no offscreen GL."""
+    try:
+        _apply_requested_gl_backend()
+        return mujoco.Renderer(model, image_size, image_size)
+    except ValueError:  # larger than the model's offscreen buffer: MuJoCo's message says so
+        raise
+    except Exception as error:
+        raise RuntimeError(
+            "MuJoCo could not create an offscreen renderer. With MUJOCO_GL=egl (the default that "
+            "torchrl_dalir sets) install the Debian packages libegl1 and libgl1-mesa-dri."
+        ) from error
+
+
+class RGBCamera:
+    """Renders RGB images ``[size, size, 3]`` (uint8) from one MuJoCo camera, for videos, with the
+    world's up towards the top: the image of a camera mounted upside down (MetaWorld's ``corner2``)
+    is turned half a turn.
+
+    Create it inside the process that uses it, like :class:`DepthPointCloudCamera`.
+
+    Args:
+        model: the ``mujoco.MjModel`` to render.
+        camera: the camera's name in the model.
+        size: the square image's side, in pixels (at most the model's offscreen buffer size).
+    """
+
+    def __init__(self, model: mujoco.MjModel, camera: str, size: int):
+        self.camera = camera
+        self.cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+        self.renderer = make_renderer(model, size)
+        _track(self)
+
+    def close(self) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+
+    def __call__(self, data: mujoco.MjData) -> np.ndarray:
+        self.renderer.update_scene(data, camera=self.camera)
+        image = self.renderer.render()
+        up = data.cam_xmat[self.cam_id].reshape(3, 3)[:, 1]  # the camera's up axis in the world frame
+        return np.ascontiguousarray(image[::-1, ::-1]) if up[2] < 0 else image
+
+
 class DepthPointCloudCamera:
     """Renders a cropped, farthest-point-sampled point cloud from one MuJoCo camera.
 
@@ -78,14 +124,7 @@ class DepthPointCloudCamera:
         self.crop_high = np.asarray(crop_high, dtype=np.float32)
         self.num_points = num_points
         self.points_in_crop: int | None = None  # set by each rendering
-        try:
-            _apply_requested_gl_backend()
-            self.renderer = mujoco.Renderer(model, image_size, image_size)
-        except Exception as error:
-            raise RuntimeError(
-                "MuJoCo could not create an offscreen renderer. With MUJOCO_GL=egl (the default that "
-                "torchrl_dalir sets) install the Debian packages libegl1 and libgl1-mesa-dri."
-            ) from error
+        self.renderer = make_renderer(model, image_size)
         self.renderer.enable_depth_rendering()
         _track(self)
         # Pixel rays in the camera frame (MuJoCo cameras look along -z, with y up).

@@ -22,15 +22,17 @@ BASE, DALIR, ARGMAX, RANDOM = "base policy", "DALI-R", "DALI-R argmax", "random 
 METHODS = {"base": BASE, "dalir": DALIR, "argmax": ARGMAX, "random": RANDOM}  # short names for command lines
 
 
-def check_evaluation_settings(episodes: int, seed: int, num_candidates: int = 1, dropout: float = 0.0, *, prefix: str = "") -> None:
+def check_evaluation_settings(episodes: int, seed: int, num_candidates: int = 1, dropout: float = 0.0, *, prefix: str = "",
+                              video: int = 0) -> None:
     """Refuses evaluation settings before any episode runs: fewer than one episode, a negative
     evaluation seed (:func:`~torchrl_dalir.seeds.check_eval_seed`), fewer than one candidate, a
-    dropout probability outside ``[0, 1)``. ``prefix`` names the settings as a job spells them
-    (``eval_`` for ``eval_episodes``, ``eval_seed``)."""
+    dropout probability outside ``[0, 1)``, a negative number of videos. ``prefix`` names the
+    settings as a job spells them (``eval_`` for ``eval_episodes``, ``eval_seed``)."""
     check_at_least(f"{prefix}episodes", episodes, 1)
     check_eval_seed(seed, f"{prefix}seed")
     check_at_least("num_candidates", num_candidates, 1)
     check_probability("dropout", dropout)
+    check_at_least("video", video, 0)
 
 
 def evaluate_checkpoints(
@@ -49,6 +51,9 @@ def evaluate_checkpoints(
     candidates=None,
     search: SearchConfig | None = None,
     progress: bool = True,
+    max_steps: int | None = None,
+    video: int = 0,
+    video_dir: str | Path | None = None,
 ) -> dict[str, dict]:
     """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` is given,
     with 8-of-16 receding-horizon execution on the same ``episodes`` evaluation episodes.
@@ -64,12 +69,21 @@ def evaluate_checkpoints(
     action-space search, by default none) say how the reranking methods make their candidates. Returns
     ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with ``success_rate``, ``episodes``, ``seconds`` and per-episode ``records``; the reranking
     methods' records describe their choices in ``details`` (:func:`decision_summary`).
+
+    ``max_steps`` stops every episode early (for quick checks). ``video=n`` records the first
+    ``n`` episodes of each method as ``<video_dir>/<method>_episode_<i>.gif`` (TorchRL's
+    ``VideoRecorder``, see :func:`~torchrl_dalir.evaluation.success_rate.evaluate`), e.g.
+    ``base_episode_0.gif`` next to ``dalir_episode_0.gif``: the same episode for each method.
+    A method that repeats another's row (``argmax`` when the checkpoint's rule is the arg-max) is not run again,
+    so has no videos of its own.
     """
     from torchrl_dalir.training.loop import load_checkpoint
     from torchrl_dalir.training.policy import load_policy
     from torchrl_dalir.training.world_model import WORLD_MODEL_ENTRIES, check_trained_on
 
-    check_evaluation_settings(episodes, seed, num_candidates, dropout)
+    check_evaluation_settings(episodes, seed, num_candidates, dropout, video=video)
+    if video and video_dir is None:
+        raise ValueError(f"video={video} needs video_dir=<folder> for the files")
     methods = methods if methods is not None else ["base"] + (["dalir"] if world_model_path is not None else [])
     unknown = set(methods) - set(METHODS)
     if unknown:
@@ -103,7 +117,8 @@ def evaluate_checkpoints(
             describe = partial(decision_summary, action_steps=policy.config.action_steps)
         name = METHODS[method]
         torch.manual_seed(actor_seed)  # after building the actor, whose modules' initialisation draws from it
-        result = evaluate(actor, policy.task, episodes, seed, progress=progress, describe=describe, **env_kwargs)
+        videos = {"video": video, "video_prefix": Path(video_dir) / f"{method}_episode"} if video else {}
+        result = evaluate(actor, policy.task, episodes, seed, progress=progress, describe=describe, max_steps=max_steps, **videos, **env_kwargs)
         rows[name] = {
             **({"selection": chooser.selection.name} if method in ("dalir", "argmax") else {}),
             "success_rate": result.success_rate,

@@ -5,15 +5,17 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from functools import partial
+from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import SerialEnv
+from torchrl.envs import SerialEnv, TransformedEnv
 from tqdm.auto import tqdm
 
 from torchrl_dalir import keys
 from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs import get_task, make_env
+from torchrl_dalir.evaluation.video import VIDEO_SIZE, gif_recorder
 from torchrl_dalir.seeds import check_eval_seed, eval_episode_seed
 
 
@@ -50,6 +52,9 @@ def evaluate(
     env=None,
     progress: bool = True,
     describe: Callable[[TensorDictBase], dict] | None = None,
+    max_steps: int | None = None,
+    video: int = 0,
+    video_prefix: str | Path | None = None,
     **env_kwargs,
 ) -> EvaluationResult:
     """Runs ``policy`` for ``num_episodes`` evaluation episodes and records each one.
@@ -67,16 +72,41 @@ def evaluate(
         progress: show a progress bar.
         describe: computes extra per-episode values from the episode's rollout, kept in the
             record's ``details`` (e.g. :func:`torchrl_dalir.evaluation.compare.decision_summary`).
+        max_steps: stops every episode after this many steps (default: the task's step limit), for
+            quick checks.
+        video: records the first ``video`` episodes (none by default) with TorchRL's
+            ``VideoRecorder`` in an env of their own that also renders ``pixels``
+            (:data:`~torchrl_dalir.evaluation.video.VIDEO_SIZE`), as ``<video_prefix>_<episode>.gif``
+            (one frame at the reset and one per step). The episodes are the same as without.
+        video_prefix: where the videos go: a folder and a file-name prefix, e.g. ``videos/base``.
     """
     check_at_least("num_episodes", num_episodes, 1)
     check_eval_seed(seed)
-    env = env if env is not None else SerialEnv(1, partial(make_env, task, seed=None, **env_kwargs))
-    max_steps = get_task(task).max_steps
+    check_at_least("video", video, 0)
+    if max_steps is not None:
+        check_at_least("max_steps", max_steps, 1)
+    if video and video_prefix is None:
+        raise ValueError(f"video={video} needs video_prefix=<folder>/<name> for the files")
+    if video and env is not None:
+        raise ValueError("video= records in an env of its own (which renders pixels): pass env= or video=, not both")
+    make = partial(make_env, task, seed=None, **env_kwargs)
+    recording = None  # the env of the recorded episodes (the others render no pixels)
+    if video:
+        recorder = gif_recorder(Path(video_prefix).parent, Path(video_prefix).name)
+        recording = TransformedEnv(SerialEnv(1, partial(make, pixels=VIDEO_SIZE)), recorder)
+    max_steps = max_steps if max_steps is not None else get_task(task).max_steps
     records = []
     for episode in tqdm(range(num_episodes), desc=f"evaluate {task}", disable=not progress, leave=False):
         reset_seed = eval_episode_seed(seed, episode)
-        td = env.reset(seed=reset_seed)
-        rollout = env.rollout(max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True)
+        if episode < video:
+            episode_env = recording
+        else:
+            env = env if env is not None else SerialEnv(1, make)
+            episode_env = env
+        td = episode_env.reset(seed=reset_seed)
+        rollout = episode_env.rollout(max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True)
+        if episode_env is recording:
+            recorder.dump(step=episode)
         success = bool(rollout["next", keys.SUCCESS].any())
         records.append(
             EpisodeRecord(
@@ -88,4 +118,6 @@ def evaluate(
                 details=describe(rollout) if describe is not None else {},
             )
         )
+    if recording is not None:
+        recording.close()
     return EvaluationResult(task=task, episodes=records)

@@ -5,7 +5,16 @@ from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 from torchrl_dalir.modules.policies import ChunkPolicy3D, DiffusionPolicy3D, FlowMatchingPolicy3D, make_policy
 from torchrl_dalir.modules.unet import ConditionalUnet1D
-from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
+from torchrl_dalir.modules.world_model import (
+    LatentEncoder,
+    LatentEncoderModule,
+    LatentWorldModel,
+    ScorerEnsemble,
+    ScorerEnsembleModule,
+    ScorerModule,
+    TaskCompletionScorer,
+    WorldModelModule,
+)
 
 __all__ = [
     "ChunkPolicy3D",
@@ -13,12 +22,16 @@ __all__ = [
     "DiffusionPolicy3D",
     "FlowMatchingPolicy3D",
     "LatentEncoder",
+    "LatentEncoderModule",
     "LatentWorldModel",
     "MinMaxNormalizer",
     "PointCloudEncoder",
     "PolicyConfig",
     "ScorerEnsemble",
+    "ScorerEnsembleModule",
+    "ScorerModule",
     "StateEncoder",
     "TaskCompletionScorer",
+    "WorldModelModule",
     "make_policy",
 ]

@@ -9,17 +9,25 @@
 - :class:`TaskCompletionScorer` gives the logit of eventual task completion from a latent.
 - :class:`ScorerEnsemble` stacks several scorers, trained on imagined latents, whose
   disagreement tells how far a candidate's score can be trusted.
+
+Each takes and returns tensors (what :class:`~torchrl_dalir.reranking.RerankingActor` calls at
+every decision). :class:`LatentEncoderModule`, :class:`WorldModelModule`, :class:`ScorerModule`
+and :class:`ScorerEnsembleModule` are the same modules (shared, not copied) as TensorDict modules
+with declared ``in_keys``/``out_keys`` (defaults from :mod:`torchrl_dalir.keys`), to compose in a
+``TensorDictSequential``: encoder -> world model -> scorer.
 """
 
 from __future__ import annotations
 
 import copy
+from collections.abc import Sequence
 
 import torch
-from tensordict import TensorDict
+from tensordict import NestedKey, TensorDict
 from tensordict.nn import EnsembleModule, TensorDictModule
 from torch import nn
 
+from torchrl_dalir import keys
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 
 
@@ -159,7 +167,7 @@ class ScorerEnsemble(nn.Module):
         torch.Size([5, 7])
     """
 
-    LATENT_KEY, LOGIT_KEY = "latent", "logit"
+    LATENT_KEY, LOGIT_KEY = keys.LATENT, keys.COMPLETION_LOGIT  # the members' TensorDict keys
 
     def __init__(self, latent_dim: int, hidden: int = 256, members: int = 5):
         super().__init__()
@@ -179,3 +187,109 @@ class ScorerEnsemble(nn.Module):
             latent = latent.expand(self.members, *latent.shape)
         inputs = TensorDict({self.LATENT_KEY: latent}, batch_size=latent.shape[:-1])
         return self.ensemble(inputs).get(self.LOGIT_KEY)
+
+    def member_logits(self, latent: torch.Tensor) -> torch.Tensor:
+        """Logits ``[..., E]`` of every member on latents ``[..., L]``: the members last, so that
+        the batch dimensions lead (as a tensordict's batch size needs)."""
+        return self(latent).movedim(0, -1)
+
+
+class _TensorModule(TensorDictModule):
+    """A tensor-level module as a ``TensorDictModule`` that reads ``in_keys`` and writes ``out_keys``
+    (by default the subclass's ``DEFAULT_IN_KEYS``/``DEFAULT_OUT_KEYS``), calling ``METHOD``."""
+
+    DEFAULT_IN_KEYS: tuple[NestedKey, ...] = ()
+    DEFAULT_OUT_KEYS: tuple[NestedKey, ...] = ()
+    METHOD: str | None = None  # None: the module's forward
+
+    def __init__(self, module: nn.Module, *, in_keys: Sequence[NestedKey] | None = None, out_keys: Sequence[NestedKey] | None = None):
+        in_keys = list(in_keys if in_keys is not None else self.DEFAULT_IN_KEYS)
+        out_keys = list(out_keys if out_keys is not None else self.DEFAULT_OUT_KEYS)
+        for name, given, expected in (("in_keys", in_keys, self.DEFAULT_IN_KEYS), ("out_keys", out_keys, self.DEFAULT_OUT_KEYS)):
+            if len(given) != len(expected):
+                raise ValueError(f"{type(self).__name__} takes {len(expected)} {name} (like the default {list(expected)}), got {given}")
+        super().__init__(module, in_keys=in_keys, out_keys=out_keys, method=self.METHOD)
+
+
+class LatentEncoderModule(_TensorModule):
+    """:class:`LatentEncoder` as a TensorDict module: the latent ``s_t`` of the current observation.
+
+    Args:
+        encoder: the latent encoder (shared, not copied).
+        in_keys: the point cloud ``[..., N, 3]`` and the robot state ``[..., D]`` of one observation, no
+            history (default ``point_cloud``, ``agent_pos``).
+        out_keys: the latent ``[..., L]`` (default ``latent``).
+
+    Example:
+        >>> from torchrl_dalir.modules import PolicyConfig, make_policy
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> module = LatentEncoderModule(LatentEncoder.from_policy(policy))
+        >>> td = TensorDict({"point_cloud": torch.rand(5, 64, 3), "agent_pos": torch.rand(5, 4)}, [5])
+        >>> module(td)["latent"].shape
+        torch.Size([5, 128])
+    """
+
+    DEFAULT_IN_KEYS = (keys.POINT_CLOUD, keys.AGENT_POS)
+    DEFAULT_OUT_KEYS = (keys.LATENT,)
+
+
+class WorldModelModule(_TensorModule):
+    """:class:`LatentWorldModel` as a TensorDict module: the imagined latent after an action chunk,
+    ``s_hat_{t+k} = s_t + W(s_t, a_{t:t+k})`` (:meth:`LatentWorldModel.imagine`).
+
+    Args:
+        world_model: the latent world model (shared, not copied).
+        in_keys: the latent ``[..., L]`` and the ``k`` actions to execute ``[..., k, A]`` (default
+            ``latent``, ``action_chunk``, as in the training windows; a policy's 16-action chunk
+            executes its ``policy.config.executed`` slice).
+        out_keys: the imagined latent ``[..., L]`` (default ``imagined_latent``).
+
+    Example:
+        >>> module = WorldModelModule(LatentWorldModel(latent_dim=128, action_dim=4, hidden=32, layers=1, heads=2))
+        >>> td = TensorDict({"latent": torch.randn(5, 128), "action_chunk": torch.randn(5, 8, 4)}, [5])
+        >>> module(td)["imagined_latent"].shape
+        torch.Size([5, 128])
+    """
+
+    DEFAULT_IN_KEYS = (keys.LATENT, keys.ACTION_CHUNK)
+    DEFAULT_OUT_KEYS = (keys.IMAGINED_LATENT,)
+    METHOD = "imagine"
+
+
+class ScorerModule(_TensorModule):
+    """:class:`TaskCompletionScorer` as a TensorDict module: the completion logit of a latent.
+
+    Args:
+        scorer: the task-completion scorer (shared, not copied).
+        in_keys: the latent to score ``[..., L]`` (default ``imagined_latent``, what DALI-R scores;
+            ``["latent"]`` scores the current state).
+        out_keys: the logit ``[...]`` (default ``completion_logit``).
+
+    Example:
+        >>> module = ScorerModule(TaskCompletionScorer(128, hidden=32))
+        >>> module(TensorDict({"imagined_latent": torch.randn(5, 128)}, [5]))["completion_logit"].shape
+        torch.Size([5])
+    """
+
+    DEFAULT_IN_KEYS = (keys.IMAGINED_LATENT,)
+    DEFAULT_OUT_KEYS = (keys.COMPLETION_LOGIT,)
+
+
+class ScorerEnsembleModule(_TensorModule):
+    """:class:`ScorerEnsemble` as a TensorDict module: every member's completion logit of a latent
+    (:meth:`ScorerEnsemble.member_logits`).
+
+    Args:
+        ensemble: the scorer ensemble (shared, not copied).
+        in_keys: the latent to score ``[..., L]`` (default ``imagined_latent``).
+        out_keys: the members' logits ``[..., E]`` (default ``member_logits``).
+
+    Example:
+        >>> module = ScorerEnsembleModule(ScorerEnsemble(128, hidden=32, members=3))
+        >>> module(TensorDict({"imagined_latent": torch.randn(5, 128)}, [5]))["member_logits"].shape
+        torch.Size([5, 3])
+    """
+
+    DEFAULT_IN_KEYS = (keys.IMAGINED_LATENT,)
+    DEFAULT_OUT_KEYS = (keys.MEMBER_LOGITS,)
+    METHOD = "member_logits"
