@@ -61,7 +61,25 @@ def make_renderer(model: mujoco.MjModel, image_size: int) -> mujoco.Renderer:
         ) from error
 
 
-class RGBCamera:
+class _Camera:
+    """One named MuJoCo camera with its own offscreen renderer, closed before MuJoCo's EGL display."""
+
+    def __init__(self, model: mujoco.MjModel, camera: str, size: int):
+        self.cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+        if self.cam_id < 0:
+            names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i) for i in range(model.ncam)]
+            raise ValueError(f"camera {camera!r} is not in the model; it has {names}")
+        self.camera = camera
+        self.renderer = make_renderer(model, size)
+        _track(self)
+
+    def close(self) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+
+
+class RGBCamera(_Camera):
     """Renders RGB images ``[size, size, 3]`` (uint8) from one MuJoCo camera, for videos, with the
     world's up towards the top: the image of a camera mounted upside down (MetaWorld's ``corner2``)
     is turned half a turn.
@@ -74,17 +92,6 @@ class RGBCamera:
         size: the square image's side, in pixels (at most the model's offscreen buffer size).
     """
 
-    def __init__(self, model: mujoco.MjModel, camera: str, size: int):
-        self.camera = camera
-        self.cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
-        self.renderer = make_renderer(model, size)
-        _track(self)
-
-    def close(self) -> None:
-        if self.renderer is not None:
-            self.renderer.close()
-            self.renderer = None
-
     def __call__(self, data: mujoco.MjData) -> np.ndarray:
         self.renderer.update_scene(data, camera=self.camera)
         image = self.renderer.render()
@@ -92,7 +99,7 @@ class RGBCamera:
         return np.ascontiguousarray(image[::-1, ::-1]) if up[2] < 0 else image
 
 
-class DepthPointCloudCamera:
+class DepthPointCloudCamera(_Camera):
     """Renders a cropped, farthest-point-sampled point cloud from one MuJoCo camera.
 
     Create it inside the process that uses it: an EGL rendering context does not cross processes.
@@ -114,29 +121,17 @@ class DepthPointCloudCamera:
         num_points: int = 512,
         image_size: int = 128,
     ):
-        cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
-        if cam_id < 0:
-            names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i) for i in range(model.ncam)]
-            raise ValueError(f"camera {camera!r} is not in the model; it has {names}")
-        self.camera = camera
-        self.cam_id = cam_id
+        super().__init__(model, camera, image_size)
         self.crop_low = np.asarray(crop_low, dtype=np.float32)
         self.crop_high = np.asarray(crop_high, dtype=np.float32)
         self.num_points = num_points
         self.points_in_crop: int | None = None  # set by each rendering
-        self.renderer = make_renderer(model, image_size)
         self.renderer.enable_depth_rendering()
-        _track(self)
         # Pixel rays in the camera frame (MuJoCo cameras look along -z, with y up).
-        focal = 0.5 * image_size / np.tan(np.deg2rad(model.cam_fovy[cam_id]) / 2)
+        focal = 0.5 * image_size / np.tan(np.deg2rad(model.cam_fovy[self.cam_id]) / 2)
         pix = np.arange(image_size, dtype=np.float32) + 0.5 - image_size / 2
         u, v = np.meshgrid(pix, pix)  # u: column offset, v: row offset (rows go down)
         self._rays = np.stack([u / focal, -v / focal, -np.ones_like(u)], axis=-1).reshape(-1, 3)
-
-    def close(self) -> None:
-        if self.renderer is not None:
-            self.renderer.close()
-            self.renderer = None
 
     def __call__(self, data: mujoco.MjData) -> np.ndarray:
         """Returns a ``[num_points, 3]`` float32 cloud in the world frame."""
