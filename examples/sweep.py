@@ -13,17 +13,15 @@ Each run's output goes to ``<out>/logs/``; exit codes and wall times to ``<out>/
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write_text, run_logged
 
 EXAMPLES = Path(__file__).resolve().parent
 
@@ -47,13 +45,7 @@ def run_arguments(cfg: Config, task: str, seed: int) -> list[str]:
 def run_one(cfg: Config, task: str, seed: int) -> dict:
     name = f"{task}_{cfg.policy}_seed{seed}"
     log = Path(cfg.out) / "logs" / f"{name}.log"
-    log.parent.mkdir(parents=True, exist_ok=True)
-    command = [sys.executable, str(EXAMPLES / "train_dp3_wm.py"), *run_arguments(cfg, task, seed)]
-    env = {**os.environ, "OMP_NUM_THREADS": str(cfg.threads), "MKL_NUM_THREADS": str(cfg.threads)}
-    start = time.perf_counter()
-    with log.open("a") as stream:
-        code = subprocess.run(command, stdout=stream, stderr=subprocess.STDOUT, env=env).returncode
-    seconds = time.perf_counter() - start
+    code, seconds = run_logged([sys.executable, str(EXAMPLES / "train_dp3_wm.py"), *run_arguments(cfg, task, seed)], log, cfg.threads)
     print(f"[sweep] {name}: {'ok' if code == 0 else f'FAILED (exit {code}), see {log}'} in {seconds / 60:.1f} min", flush=True)
     return {"task": task, "seed": seed, "policy": cfg.policy, "exit_code": code, "seconds": round(seconds, 1), "log": str(log)}
 

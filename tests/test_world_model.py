@@ -181,3 +181,25 @@ def test_the_scorer_ensemble_can_learn_from_chosen_sources_only(trained_world_mo
         train_world_model(dataclasses.replace(cfg, ensemble_sources=["teleop"]))
     with pytest.raises(ValueError, match="no training trajectory of the sources \\['still'\\]"):
         train_world_model(dataclasses.replace(cfg, ensemble_sources=["still"]))
+
+
+def test_a_data_subset_trains_on_fewer_trajectories_and_keeps_the_held_out_ones(trained_world_model, collected):
+    from torchrl_dalir.training.world_model import keep_trajectories, split_trajectories
+
+    cfg, path, _ = trained_world_model
+    held = split_trajectories(collected.num_trajectories, cfg.held_out_fraction, cfg.seed)
+    assert held.nonzero().flatten().tolist() == [0, 4]
+    one, two = keep_trajectories(held, 1, 0), keep_trajectories(held, 2, 0)
+    assert (one.sum(), two.sum()) == (1, 2) and (one <= two).all() and not (two & held).any()  # nested, never held out
+    assert torch.equal(keep_trajectories(held, 0, 0), ~held)  # 0: every training trajectory
+    with pytest.raises(ValueError, match="only 3 training trajectories"):
+        keep_trajectories(held, 4, 0)
+    small = dataclasses.replace(cfg, mixed_trajectories=1, ensemble_steps=5)
+    assert small.run_dir().name == "seed0_mixed1"
+    parts = load_world_model(train_world_model(small))
+    (kept,) = one.nonzero().flatten().tolist()
+    assert parts.metrics["ensemble_windows"] == len(collected.trajectory(kept)) - 1  # the one kept trajectory's windows
+    assert parts.held_out_trajectories == [0, 4]
+    assert parts.metrics["held_out_rows"] == load_world_model(path).metrics["held_out_rows"]  # the same held-out set
+    with pytest.raises(ValueError, match="mixed_trajectories"):
+        dataclasses.replace(cfg, mixed_trajectories=-1)

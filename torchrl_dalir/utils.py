@@ -1,4 +1,4 @@
-"""Small shared helpers: atomic file writes, safe loading of torch files, digests of weights."""
+"""Small shared helpers: atomic file writes, safe loading of torch files, digests of weights, logged job processes."""
 
 from __future__ import annotations
 
@@ -6,7 +6,9 @@ import hashlib
 import os
 import pickle
 import re
+import subprocess
 import tempfile
+import time
 from pathlib import Path
 
 import torch
@@ -82,3 +84,15 @@ def weights_digest(module: torch.nn.Module) -> str:
         digest.update(f"{name}:{value.dtype}:{tuple(value.shape)};".encode())
         digest.update(value.reshape(-1).view(torch.uint8).numpy().tobytes())
     return digest.hexdigest()
+
+
+def run_logged(command: list[str], log: str | Path, threads: int = 1) -> tuple[int, float]:
+    """Runs ``command`` as its own process with ``threads`` torch threads, appending its output to
+    ``log``; returns its exit code and wall time in seconds. A job that crashes stops no other."""
+    log = Path(log)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    start = time.perf_counter()
+    with log.open("a") as stream:
+        code = subprocess.run(command, stdout=stream, stderr=subprocess.STDOUT, env=env).returncode
+    return code, time.perf_counter() - start

@@ -94,6 +94,31 @@ def plot_success_by_task(table: list[dict], path: str | Path, title: str = "",
     return _save(fig, path)
 
 
+def plot_data_scale(table: list[dict], path: str | Path, title: str = "Mixed-quality data for the world model") -> Path:
+    """Held-out latent MSE (left) and DALI-R's success (right) against the number of training
+    trajectories, one line per task (paper Table 3b). ``table`` rows: ``task``,
+    ``mixed_trajectories`` (a count or ``"all"``, in increasing order per task) and per-seed lists
+    ``wm_mse`` and ``success``; means over seeds are drawn, with one dot per seed."""
+    fig, axes = plt.subplots(1, 2, figsize=(7.5, 3.2), dpi=90)
+    for task in dict.fromkeys(row["task"] for row in table):
+        rows = [row for row in table if row["task"] == task]
+        x = np.arange(len(rows))
+        for ax, key, scale in ((axes[0], "wm_mse", 1), (axes[1], "success", 100)):
+            values = [scale * np.asarray(row[key]) for row in rows]
+            ax.plot(x, [v.mean() for v in values], marker="o", label=task)
+            for i, v in enumerate(values):
+                ax.scatter(np.full(len(v), i), v, color="k", s=8, zorder=3)
+            ax.set_xticks(x, [str(row["mixed_trajectories"]) for row in rows])
+    axes[0].set_ylabel("held-out latent MSE")
+    axes[1].set_ylabel("success (%)")
+    axes[1].set_ylim(0, 100)
+    for ax in axes:
+        ax.set_xlabel("mixed trajectories")
+    axes[1].legend(fontsize=8)
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
 def plot_candidate_outcomes(records: list[dict], path: str | Path, title: str = "") -> Path:
     """Imagined against real outcomes of DALI-R's candidates (records of
     :func:`~torchrl_dalir.evaluation.candidate_outcomes.candidate_outcomes`): (left) every

@@ -81,6 +81,7 @@ class WorldModelTrainingConfig:
     policy_checkpoint: str = "outputs/policies/disassemble/fm_seed0/checkpoint.pt"
     out: str = "outputs/world_models"  # the run writes <out>/<task>/seed<seed>/
     held_out_fraction: float = 0.1
+    mixed_trajectories: int = 0  # train on this many of the training trajectories (0: all); the held-out set stays the same
     scorer_target: str = "completion"  # completion (sparse labels) | dense_reward (the oracle ablation)
     dense_reward_gamma: float = 0.99
     scorer_hidden: int = 256
@@ -116,7 +117,7 @@ class WorldModelTrainingConfig:
         for name in ("scorer_batch_size", "wm_batch_size", "ensemble_batch_size", "scorer_epochs", "wm_epochs", "ensemble_members",
                      "checkpoint_every", "log_every"):
             check_at_least(name, getattr(self, name), 1)
-        for name in ("scorer_steps", "frozen_scorer_steps", "wm_steps", "ensemble_steps"):
+        for name in ("scorer_steps", "frozen_scorer_steps", "wm_steps", "ensemble_steps", "mixed_trajectories"):
             check_at_least(name, getattr(self, name), 0)
 
     def variant(self) -> str:
@@ -125,6 +126,7 @@ class WorldModelTrainingConfig:
         parts = [self.scorer_target] if self.scorer_target != "completion" else []
         parts += [self.encoder] if self.encoder != "finetune" else []
         parts += ["ens-" + "-".join(self.ensemble_sources)] if self.ensemble_sources else []
+        parts += [f"mixed{self.mixed_trajectories}"] if self.mixed_trajectories else []
         return "".join(f"_{p}" for p in parts) + "".join(f"+{name}" for name in self.extra_data)
 
     def run_dir(self) -> Path:
@@ -168,6 +170,21 @@ def split_trajectories(num_trajectories: int, held_out_fraction: float, seed: in
     return held
 
 
+def keep_trajectories(held: torch.Tensor, count: int, seed: int) -> torch.Tensor:
+    """A bool mask over trajectories: ``count`` of the training ones (``~held``) drawn at random,
+    nested for growing ``count`` (the data-scale ablation, paper Table 3b); all for ``count=0``."""
+    train = torch.nonzero(~held).squeeze(-1)
+    if count > len(train):
+        raise ValueError(f"mixed_trajectories={count} but only {len(train)} training trajectories exist "
+                         f"({int(held.sum())} are held out): collect more mixed data or ask for fewer")
+    keep = ~held
+    if count:
+        order = train[torch.randperm(len(train), generator=torch.Generator().manual_seed(seed))]
+        keep = torch.zeros_like(held)
+        keep[order[:count]] = True
+    return keep
+
+
 @torch.no_grad()
 def encode_rows(encoder: LatentEncoder, rows: TensorDict, batch_size: int = 1024, device="cpu") -> torch.Tensor:
     """The latent of every row, ``[R, L]``."""
@@ -207,7 +224,8 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
         rows[target_key] = dense_reward_targets(rows, cfg.dense_reward_gamma)
     held = split_trajectories(mixed.num_trajectories, cfg.held_out_fraction, cfg.seed)
     held_rows = held[rows[keys.TRAJECTORY_ID]]
-    train_rows = torch.nonzero(~held_rows).squeeze(-1)
+    kept = keep_trajectories(held, cfg.mixed_trajectories, cfg.seed)
+    train_rows = torch.nonzero(kept[rows[keys.TRAJECTORY_ID]]).squeeze(-1)
     if ensemble_sources is not None and not ensemble_sources[rows[keys.SOURCE][train_rows]].any():
         raise ValueError(f"no training trajectory of the sources {cfg.ensemble_sources} (all held out?): add data of them or name others")
     logger = make_logger(run_dir, f"{cfg.task}_world_model_seed{cfg.seed}", use_wandb=cfg.wandb, config=config_dict(cfg))
@@ -247,8 +265,9 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     k = policy.config.action_steps
     future_keys = (LATENT,) if target_key == keys.COMPLETION_TARGET else (LATENT, target_key)  # the ensemble's target at t + k
     windows = TrajectoryWindows(TrajectoryDataset(mixed.root, mixed.meta, latent_rows), obs_steps=1, horizon=k, future_offset=k, observation_keys=future_keys)
-    held_anchor = held[windows.dataset.rows[keys.TRAJECTORY_ID][windows.anchors]]
-    train_anchors = torch.nonzero(~held_anchor).squeeze(-1)
+    anchor_trajectories = windows.dataset.rows[keys.TRAJECTORY_ID][windows.anchors]
+    held_anchor = held[anchor_trajectories]
+    train_anchors = torch.nonzero(kept[anchor_trajectories]).squeeze(-1)
 
     def wm_batch(indices):
         batch = windows[indices]
