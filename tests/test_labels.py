@@ -66,6 +66,9 @@ def test_dense_reward_targets_are_normalised_reward_to_go_per_trajectory():
     targets = dense_reward_targets(rows, gamma=0.5)
     # reward-to-go: 1 + 0.5*2 = 2, 2, 0 | 4, 0, 0; divided by the largest (4)
     assert torch.equal(targets, torch.tensor([0.5, 0.5, 0.0, 1.0, 0.0, 0.0]))
+    # negative shaped rewards (Adroit Pen's): reward-to-go -1 + 0.5*2 = 0, 2, 0 | -4, 0, 0 mapped from [-4, 2] onto [0, 1]
+    rows[keys.REWARD] = torch.tensor([-1.0, 2.0, 0.0, -4.0, 0.0, 0.0])
+    assert torch.allclose(dense_reward_targets(rows, gamma=0.5), torch.tensor([4, 6, 4, 0, 4, 4]) / 6)
 
 
 def rollout(done, success, **extra) -> TensorDict:

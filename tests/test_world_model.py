@@ -132,6 +132,8 @@ def test_dense_reward_oracle_scorer(trained_world_model):
     assert not torch.equal(state["scorer_state"]["net.0.weight"], torch.load(sparse_path, weights_only=False)["scorer_state"]["net.0.weight"])
     with pytest.raises(ValueError, match="scorer_target"):
         dataclasses.replace(cfg, scorer_target="reward")
+    with pytest.raises(ValueError, match="no oracle on door: its dense reward grows with the palm-to-handle distance"):
+        dataclasses.replace(cfg, scorer_target="dense_reward", task="door")
 
 
 def test_frozen_encoder_keeps_the_policys_encoder_and_trains_the_scorer_on_its_latents(trained_world_model):

@@ -42,16 +42,17 @@ def completion_targets(num_actions: int, terminal_label: float, gamma: float) ->
 
 def dense_reward_targets(rows: TensorDictBase, gamma: float) -> torch.Tensor:
     """The dense-reward oracle's targets (the paper's ablation): each row's discounted reward-to-go
-    within its trajectory, divided by the largest one so that targets lie in [0, 1].
+    within its trajectory, mapped linearly onto [0, 1] (the smallest to 0, the largest to 1). The
+    final rows' reward-to-go is 0, so with non-negative rewards (MetaWorld) this divides by the
+    largest; Adroit Pen's shaped reward is partly negative, and the order is kept all the same.
 
     ``rows`` are stored rows (``reward`` of the action taken at the row, ``is_final`` at ``s_T``).
     Uses the simulator's shaped reward, which the method itself never sees.
     """
     reward = rows[keys.REWARD].float().unsqueeze(-1)
     to_go = reward2go(reward, rows[keys.IS_FINAL].unsqueeze(-1), gamma, time_dim=-2).squeeze(-1)
-    if (to_go < 0).any():
-        raise ValueError("the dense-reward oracle expects non-negative rewards")
-    return to_go / to_go.max().clamp_min(1e-8)
+    low = to_go.min()
+    return (to_go - low) / (to_go.max() - low).clamp_min(1e-8)
 
 
 def quality_tag(success: bool, expert_source: bool) -> int:

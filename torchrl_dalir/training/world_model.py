@@ -63,6 +63,9 @@ WORLD_MODEL_ENTRIES = ("task", "policy_config", "action_dim", "state_dim", "worl
 # The scorer's training target: the sparse terminal labels' Monte-Carlo targets (the method), or
 # the simulator's dense reward-to-go (an oracle, for the ablation).
 SCORER_TARGETS = {"completion": keys.COMPLETION_TARGET, "dense_reward": keys.DENSE_REWARD_TARGET}
+# Tasks whose simulator reward is no oracle: gymnasium-robotics' Door-v1 dense reward (since
+# 1.2.1) grows with the palm-to-handle distance, so it rewards moving away from the handle.
+MISLEADING_DENSE_REWARD = {"door": "its dense reward grows with the palm-to-handle distance (gymnasium-robotics >= 1.2.1)"}
 ENCODER_MODES = ("finetune", "frozen")
 
 
@@ -112,6 +115,9 @@ class WorldModelTrainingConfig:
     def __post_init__(self):
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("scorer_target", self.scorer_target, SCORER_TARGETS)
+        if self.scorer_target == "dense_reward" and self.task in MISLEADING_DENSE_REWARD:
+            raise ValueError(f"scorer_target=dense_reward is no oracle on {self.task}: {MISLEADING_DENSE_REWARD[self.task]}; "
+                             "use the sparse labels (scorer_target=completion)")
         check_choice("encoder", self.encoder, ENCODER_MODES)
         check_choice("precision", self.precision, PRECISIONS)
         for name in ("scorer_batch_size", "wm_batch_size", "ensemble_batch_size", "scorer_epochs", "wm_epochs", "ensemble_members",
