@@ -1,5 +1,7 @@
 """Bad settings and bad files fail at once, with a message that names them."""
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -47,3 +49,15 @@ def test_load_checkpoint_explains_directories_and_foreign_files(tmp_path):
         load_checkpoint(tmp_path / "meta.json", "policy")
     with pytest.raises(FileNotFoundError, match="no policy checkpoint"):
         load_checkpoint(tmp_path / "missing.pt", "policy")
+
+
+def test_the_main_job_refuses_stage_settings_it_would_replace():
+    with pytest.raises(ValueError, match="policy_training.device='cuda' would be replaced by the main job's 'cpu', which it derives from its own device"):
+        parse_config(PipelineConfig, ["policy_training.device=cuda"], PRESETS)
+    with pytest.raises(ValueError, match="world_model.policy_checkpoint='/tmp/other.pt' .* out, policy and seed"):
+        parse_config(PipelineConfig, ["world_model.policy_checkpoint=/tmp/other.pt"], PRESETS)
+    cfg = parse_config(PipelineConfig, ["device=cuda", "task=shelf-place", "seed=2", "out=/tmp/x", "policy=dp"], PRESETS)
+    assert (cfg.policy_training.device, cfg.world_model.device) == ("cuda", "cuda")
+    assert cfg.world_model.policy_checkpoint == "/tmp/x/policies/shelf-place/dp_seed2/checkpoint.pt"
+    assert cfg.collection.mixed_name == cfg.world_model.mixed_name == "mixed_dp_seed2"
+    assert dataclasses.replace(cfg) == cfg  # a built configuration validates again unchanged

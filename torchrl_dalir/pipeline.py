@@ -7,7 +7,7 @@ job's ``preset`` selects the matching preset of each, and its ``task``, ``seed``
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from torchrl_dalir.config import check_at_least, check_choice
@@ -22,6 +22,9 @@ from torchrl_dalir.training.policy import PRESETS as POLICY_PRESETS
 from torchrl_dalir.training.policy import PolicyTrainingConfig
 from torchrl_dalir.training.world_model import PRESETS as WORLD_MODEL_PRESETS
 from torchrl_dalir.training.world_model import WorldModelTrainingConfig
+
+# The job's setting that each derived stage setting comes from (the others share their name).
+DERIVED_FROM = {"data": "out", "mixed_name": "policy and seed", "policy_checkpoint": "out, policy and seed"}
 
 STAGES = ("demos", "policy", "mixed", "exploration", "world_model", "calibration", "evaluation")
 
@@ -96,20 +99,31 @@ class PipelineConfig:
             raise ValueError(f"unknown stages {sorted(unknown)}; stages are {STAGES}")
         if self.redo:  # a redone stage invalidates every later stage
             self.redo = list(STAGES[min(STAGES.index(s) for s in self.redo) :])
-        root = Path(self.out)
-        self.collection.task = self.policy_training.task = self.world_model.task = self.task
-        self.collection.out = self.policy_training.data = self.world_model.data = str(root / "data")
-        self.policy_training.out = str(root / "policies")
-        self.world_model.out = str(root / "world_models" / self.policy)
-        self.policy_training.policy = self.policy
-        # the mixed data holds this policy's rollouts, so each policy and seed has its own
-        self.collection.mixed_name = self.world_model.mixed_name = f"mixed_{self.policy}_seed{self.seed}"
-        for stage in (self.collection, self.policy_training, self.world_model):
-            stage.seed = self.seed
-        self.policy_training.device = self.world_model.device = self.device
-        self.world_model.policy_checkpoint = str(self.policy_training.run_dir() / "checkpoint.pt")
+        for stage, settings in self._stage_settings().items():
+            config = getattr(self, stage)
+            default = type(config)()
+            for name, value in settings.items():
+                if getattr(config, name) not in (value, getattr(default, name)):  # set by hand, and would be lost
+                    raise ValueError(f"{stage}.{name}={getattr(config, name)!r} would be replaced by the main job's {value!r}, "
+                                     f"which it derives from its own {DERIVED_FROM.get(name, name)}: set that instead")
+                setattr(config, name, value)
         if self.exploration_rollouts > 0 and self.exploration_name() not in self.world_model.extra_data:
             self.world_model.extra_data = [*self.world_model.extra_data, self.exploration_name()]
+
+    def _stage_settings(self) -> dict[str, dict]:
+        """The stage settings that the job derives from its own: one task, seed, device and folder."""
+        root = Path(self.out)
+        data = str(root / "data")
+        mixed = f"mixed_{self.policy}_seed{self.seed}"  # the mixed data holds this policy's rollouts: each policy and seed has its own
+        policy = {"task": self.task, "data": data, "out": str(root / "policies"), "policy": self.policy, "seed": self.seed,
+                  "device": self.device}
+        return {
+            "collection": {"task": self.task, "out": data, "mixed_name": mixed, "seed": self.seed},
+            "policy_training": policy,
+            "world_model": {"task": self.task, "data": data, "out": str(root / "world_models" / self.policy), "mixed_name": mixed,
+                            "seed": self.seed, "device": self.device,
+                            "policy_checkpoint": str(replace(self.policy_training, **policy).run_dir() / "checkpoint.pt")},
+        }
 
     def exploration_name(self) -> str:
         return f"explore_{self.policy}_seed{self.seed}"
