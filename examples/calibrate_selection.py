@@ -1,6 +1,6 @@
 """Picks DALI-R's selection rule settings on validation episodes and stores them in the world model.
 
-    python examples/calibrate_selection.py policy=.../checkpoint.pt world_model=.../world_model.pt
+    python examples/calibrate_selection.py policy_checkpoint=.../checkpoint.pt world_model=.../world_model.pt
     python examples/calibrate_selection.py ... episodes=50 write=false     # only report
 
 The base policy and every rule of the grid (``evaluation.calibration``: the margin rule's
@@ -27,7 +27,7 @@ from torchrl_dalir.utils import atomic_write_text, writable_dir
 
 @dataclass
 class Config:
-    policy: str = "outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"
+    policy_checkpoint: str = "outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"
     world_model: str = "outputs/pipeline/world_models/fm/disassemble/seed0/world_model.pt"
     episodes: int = 30
     seed: int = VALIDATION_SEED  # validation episodes: any evaluation seed but the test seed
@@ -53,7 +53,7 @@ def main(argv: list[str]) -> None:
     check_choice("grid", cfg.grid, GRIDS)
     out = writable_dir(cfg.out if cfg.out else Path(cfg.world_model).parent)  # now, not after the episodes
     record = calibrate(
-        cfg.policy, cfg.world_model, grid=GRIDS[cfg.grid], rule=cfg.rule, alpha=cfg.alpha, episodes=cfg.episodes, seed=cfg.seed, test_seed=cfg.test_seed, write=cfg.write,
+        cfg.policy_checkpoint, cfg.world_model, grid=GRIDS[cfg.grid], rule=cfg.rule, alpha=cfg.alpha, episodes=cfg.episodes, seed=cfg.seed, test_seed=cfg.test_seed, write=cfg.write,
         device=cfg.device, num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed,
         common_noise=cfg.common_noise,
     )

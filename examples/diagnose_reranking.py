@@ -1,7 +1,7 @@
 """Does DALI-R's imagination order its candidates the way the simulator does?
 
-    python examples/diagnose_reranking.py policy=.../checkpoint.pt world_model=.../world_model.pt
-    python examples/diagnose_reranking.py policy=... world_model=... follow_through=true decisions=25 stride=5
+    python examples/diagnose_reranking.py policy_checkpoint=.../checkpoint.pt world_model=.../world_model.pt
+    python examples/diagnose_reranking.py policy_checkpoint=... world_model=... follow_through=true decisions=25 stride=5
 
 At the first ``decisions`` decisions of ``episodes`` evaluation episodes (along the base policy),
 runs every candidate's executed actions in the simulator from the same state and compares the
@@ -33,7 +33,7 @@ from torchrl_dalir.utils import atomic_write_text, writable_dir
 
 @dataclass
 class Config:
-    policy: str = "outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"
+    policy_checkpoint: str = "outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"
     world_model: str = "outputs/pipeline/world_models/fm/disassemble/seed0/world_model.pt"
     episodes: int = 5
     decisions: int = 10  # the first decisions of each episode
@@ -57,7 +57,7 @@ def main(argv: list[str]) -> dict:
     out = writable_dir(cfg.out)  # now, not after the episodes
     torch.manual_seed(cfg.actor_seed)
     actor = RerankingActor.from_checkpoints(
-        cfg.policy, cfg.world_model, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.actor_seed,
+        cfg.policy_checkpoint, cfg.world_model, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.actor_seed,
         selection=SelectionConfig(),  # imagined and real outcomes rated by the same (state) scorer; "chosen" is its arg-max
     )
     task = actor.policy.task

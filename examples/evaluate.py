@@ -1,10 +1,10 @@
 """Success rate of a trained base policy, and of DALI-R on top of it, on the same episodes.
 
-    python examples/evaluate.py policy=outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt
-    python examples/evaluate.py policy=.../checkpoint.pt world_model=.../world_model.pt episodes=100
-    python examples/evaluate.py policy=... world_model=... methods=[random]   # the random-choice control
-    python examples/evaluate.py policy=... world_model=... methods=[dalir] selection.rule=argmax   # another rule
-    python examples/evaluate.py policy=... world_model=... video=2   # GIFs of the first 2 episodes of each method
+    python examples/evaluate.py policy_checkpoint=outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt
+    python examples/evaluate.py policy_checkpoint=.../checkpoint.pt world_model=.../world_model.pt episodes=100
+    python examples/evaluate.py policy_checkpoint=... world_model=... methods=[random]   # the random-choice control
+    python examples/evaluate.py policy_checkpoint=... world_model=... methods=[dalir] selection.rule=argmax   # another rule
+    python examples/evaluate.py policy_checkpoint=... world_model=... video=2   # GIFs of the first 2 episodes of each method
 
 Prints a table and writes ``<out>/evaluation.json`` (rates and per-episode records) and
 ``<out>/evaluation.csv`` (one row per method and episode; DALI-R's rows also describe its choices,
@@ -28,8 +28,8 @@ from torchrl_dalir.utils import atomic_write_text, writable_dir
 
 @dataclass
 class Config:
-    policy: str = "outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"
-    world_model: str | None = None  # add DALI-R with this world model (trained on top of ``policy``)
+    policy_checkpoint: str = "outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"
+    world_model: str | None = None  # add DALI-R with this world model (trained on top of ``policy_checkpoint``)
     episodes: int = 50
     seed: int = 0  # the evaluation seed: episodes never overlap data-generation episodes
     device: str = "cpu"
@@ -50,7 +50,7 @@ def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
     out = writable_dir(cfg.out)  # now, not after the episodes
     rows = evaluate_checkpoints(
-        cfg.policy, cfg.world_model, episodes=cfg.episodes, seed=cfg.seed, device=cfg.device,
+        cfg.policy_checkpoint, cfg.world_model, episodes=cfg.episodes, seed=cfg.seed, device=cfg.device,
         num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed, methods=cfg.methods,
         selection=cfg.selection, common_noise=cfg.common_noise, video=cfg.video, video_dir=out / "videos",
     )

@@ -69,7 +69,7 @@ def test_every_loader_refuses_a_planted_entry_and_never_runs_it(trained_policy, 
     with pytest.raises(UnsafeFileError, match="checkpoint.pt"):
         train_policy(resumed)
     # examples/evaluate.py
-    monkeypatch.setattr(sys, "argv", ["evaluate.py", f"policy={policy}", f"world_model={wm_path}", f"out={tmp_path}"])
+    monkeypatch.setattr(sys, "argv", ["evaluate.py", f"policy_checkpoint={policy}", f"world_model={wm_path}", f"out={tmp_path}"])
     with pytest.raises(UnsafeFileError, match="policy.pt"):
         runpy.run_path(str(EXAMPLES / "evaluate.py"), run_name="__main__")
     assert not any(marker.exists() for marker in (policy_marker, wm_marker, expert_marker, resumed.run_dir() / "checkpoint.marker"))

@@ -44,7 +44,7 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     assert capsys.readouterr().out.count("done before") == 6
     # examples/evaluate.py on the job's checkpoints replays the job's evaluation exactly (same thread count)
     policy_path = tmp_path / "policies" / "reach" / f"{policy}_seed0" / "checkpoint.pt"
-    run_example("evaluate.py", [f"policy={policy_path}", f"world_model={world_model_path}", "episodes=2", "num_candidates=4",
+    run_example("evaluate.py", [f"policy_checkpoint={policy_path}", f"world_model={world_model_path}", "episodes=2", "num_candidates=4",
                                 f"out={tmp_path / 'evaluation'}"], monkeypatch)
     replay = json.loads((tmp_path / "evaluation" / "evaluation.json").read_text())["success"]
     for method in ("base policy", "DALI-R"):
@@ -52,13 +52,13 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     assert (tmp_path / "evaluation" / "evaluation.csv").read_text().count("\n") == 1 + 4
     # the candidates' imagined against their real outcomes, on the same checkpoints
     diagnosis = tmp_path / "candidate_outcomes"
-    run_example("diagnose_reranking.py", [f"policy={policy_path}", f"world_model={world_model_path}", "episodes=1", "decisions=2",
+    run_example("diagnose_reranking.py", [f"policy_checkpoint={policy_path}", f"world_model={world_model_path}", "episodes=1", "decisions=2",
                                           "num_candidates=4", f"out={diagnosis}"], monkeypatch)
     outcomes = json.loads((diagnosis / "candidate_outcomes.json").read_text())
     assert outcomes["summary"]["decisions"] == 2 and [len(r["real_score"]) for r in outcomes["records"]] == [4, 4]
     assert (diagnosis / "candidate_outcomes.png").stat().st_size > 0
     with pytest.raises(FileNotFoundError, match="no policy checkpoint at"):
-        run_example("diagnose_reranking.py", [f"policy={tmp_path / 'missing.pt'}", f"world_model={world_model_path}"], monkeypatch)
+        run_example("diagnose_reranking.py", [f"policy_checkpoint={tmp_path / 'missing.pt'}", f"world_model={world_model_path}"], monkeypatch)
     run_example("summarize_results.py", [f"out={tmp_path}"], monkeypatch)  # the sweep's summary, again
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert [(r["task"], r["policy"], r["seeds"]) for r in summary] == [("reach", policy, [0])]
