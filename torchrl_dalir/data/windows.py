@@ -4,7 +4,8 @@ Every step at which an action was taken anchors one window, the last steps of ev
 included. With ``obs_steps = 2`` and ``horizon = 16`` (DP3's setting), the window of step ``t``
 holds observations ``t-1, t``, actions ``t-1 .. t+14`` and the observation ``t + 8``:
 
-- before the episode start, observations and actions repeat the first ones (DP3's padding);
+- before the episode start, observations and actions repeat the first ones (DP3's padding; the
+  observations by the rule of :mod:`torchrl_dalir.envs.history`, the env's);
 - past the last action, actions repeat the last one; ``action_is_pad`` marks every padded
   chunk step, so a loss can ignore them;
 - past the final observation ``s_T``, the future is ``s_T`` itself and ``future_is_pad`` is set.
@@ -19,6 +20,7 @@ from tensordict import TensorDict
 
 from torchrl_dalir import keys
 from torchrl_dalir.data.storage import TrajectoryDataset
+from torchrl_dalir.envs.history import history_steps
 
 
 class TrajectoryWindows:
@@ -69,8 +71,8 @@ class TrajectoryWindows:
         start, num_actions, t = self._start[index, None], self._num_actions[index, None], self._t[index, None]
         rows = self.dataset.rows
 
-        obs_t = t + torch.arange(-(self.obs_steps - 1), 1)
-        obs_rows = start + obs_t.clamp(min=0)
+        obs_t, obs_is_pad = history_steps(t.squeeze(-1), self.obs_steps)
+        obs_rows = start + obs_t
         act_t = t - (self.obs_steps - 1) + torch.arange(self.horizon)
         act_rows = start + act_t.clamp(min=0).minimum(num_actions - 1)
         future_t = t.squeeze(-1) + self.future_offset
@@ -84,7 +86,7 @@ class TrajectoryWindows:
         return TensorDict(
             {
                 **{key: gather(key, obs_rows) for key in self.observation_keys},
-                keys.OBS_MASK: obs_t < 0,
+                keys.OBS_MASK: obs_is_pad,
                 keys.ACTION_CHUNK: gather(keys.ACTION, act_rows),
                 keys.ACTION_MASK: (act_t < 0) | (act_t >= num_actions),
                 keys.FUTURE: TensorDict(
