@@ -34,10 +34,20 @@ class TrajectoryWindows:
         observation_keys: the observation entries to gather (never the privileged state).
 
     Example:
-        >>> windows = TrajectoryWindows(dataset)
-        >>> batch = windows.sample(64, generator=torch.Generator().manual_seed(0))
-        >>> batch["point_cloud"].shape, batch["action_chunk"].shape
-        (torch.Size([64, 2, 512, 3]), torch.Size([64, 16, 4]))
+        >>> from pathlib import Path
+        >>> from torchrl_dalir.data import DatasetMeta, trajectory_rows
+        >>> T, success = 20, torch.arange(20)[:, None] == 19  # 20 actions, then a success; agent_pos is the step
+        >>> episode = TensorDict({"agent_pos": torch.arange(T * 1.0)[:, None], "action": torch.rand(T, 4), "next": {
+        ...     "agent_pos": torch.arange(1.0, T + 1)[:, None], "reward": torch.zeros(T, 1), "success": success, "done": success}}, [T])
+        >>> rows = trajectory_rows(episode, trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.9)
+        >>> windows = TrajectoryWindows(TrajectoryDataset(Path("in-memory"), DatasetMeta("synthetic", 8, 0.9, 0, []), rows))
+        >>> batch = windows[[0, 5]]  # the windows of steps 0 and 5
+        >>> batch["agent_pos"].squeeze(-1).tolist(), batch["obs_is_pad"].tolist()  # step 0's history repeats it
+        ([[0.0, 0.0], [4.0, 5.0]], [[True, False], [False, False]])
+        >>> batch["action_chunk"].shape, batch["future", "agent_pos"].squeeze(-1).tolist()  # 16 actions; 8 steps ahead
+        (torch.Size([2, 16, 4]), [8.0, 13.0])
+        >>> windows.sample(64, generator=torch.Generator().manual_seed(0))["agent_pos"].shape
+        torch.Size([64, 2, 1])
     """
 
     def __init__(

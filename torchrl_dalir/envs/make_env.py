@@ -57,9 +57,9 @@ def make_env(
 
     Example:
         >>> from torchrl_dalir import make_env
-        >>> env = make_env("disassemble", seed=0)
-        >>> rollout = env.rollout(5)
-        >>> rollout["point_cloud"].shape
+        >>> env = make_env("disassemble", seed=0)  # doctest: +SKIP
+        >>> rollout = env.rollout(5)  # doctest: +SKIP
+        >>> rollout["point_cloud"].shape  # doctest: +SKIP
         torch.Size([5, 512, 3])
     """
     check_at_least("num_points", num_points, 1)
