@@ -1,10 +1,14 @@
-import torch
-from conftest import synthetic_trajectory
+import dataclasses
 
-from torchrl_dalir import keys
+import torch
+from conftest import SHORT_REACH, synthetic_trajectory
+
+from torchrl_dalir import keys, make_env
 from torchrl_dalir.data import DatasetWriter, trajectory_rows
+from torchrl_dalir.data.collection import newest_frame
 from torchrl_dalir.data.storage import DatasetMeta
 from torchrl_dalir.data.windows import TrajectoryWindows
+from torchrl_dalir.envs.history import latest_history
 
 
 def _dataset(tmp_path, lengths=(20, 5)):
@@ -59,3 +63,22 @@ def test_sampling_is_seeded(tmp_path):
     a = windows.sample(6, generator=torch.Generator().manual_seed(0))
     b = windows.sample(6, generator=torch.Generator().manual_seed(0))
     assert (a == b).all() and a[keys.POINT_CLOUD].shape == (6, 2, 8, 3)
+
+
+def test_env_history_equals_the_windows_and_the_diagnostics_history(tmp_path):
+    """One rule: the env's stacked history (CatFrames), the training windows' and
+    ``latest_history``'s (the reranking diagnostics') are the same for the same episode."""
+    env = make_env(dataclasses.replace(SHORT_REACH, max_steps=6), seed=0, num_points=16, history=3)
+    rollout = env.rollout(10)  # random actions, truncated after 6 steps
+    env.close()
+    assert rollout.shape == (6,) and rollout["next", keys.DONE][-1].item()
+    writer = DatasetWriter(tmp_path, DatasetMeta(task="reach", num_points=16, gamma=0.9, seed=0, sources=[]))
+    frames = newest_frame(rollout)  # what a collection stores
+    writer.write_chunk(0, trajectory_rows(frames, trajectory_id=0, source=0, noise_scale=0.0, expert_source=False, gamma=0.9))
+    windows = TrajectoryWindows(writer.finalize(), obs_steps=3, horizon=3, future_offset=1)
+    batch = windows[torch.arange(len(windows))]
+    for key in (keys.POINT_CLOUD, keys.AGENT_POS):
+        assert torch.equal(batch[key], rollout[key])
+        diagnostics = [torch.stack(latest_history(list(frames[key][: t + 1]), 3)) for t in range(len(rollout))]
+        assert torch.equal(torch.stack(diagnostics), rollout[key])
+    assert batch[keys.OBS_MASK][:3].tolist() == [[True, True, False], [True, False, False], [False, False, False]]

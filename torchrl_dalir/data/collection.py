@@ -53,6 +53,12 @@ class Source:
             ``expert``, every other success ``imperfect_success``.
         history: the observation history the policy reads (2 for the base policies). The env
             then stacks observations (in a ``SerialEnv(1)``); only the newest frame is stored.
+
+    Example:
+        >>> Source("expert_noise_0.2", 200, noise_scale=0.2).describe()  # what the dataset's meta.json records
+        {'name': 'expert_noise_0.2', 'num_trajectories': 200, 'noise_scale': 0.2, 'expert': True}
+        >>> sources = [Source("expert", 200), Source("expert_noise_0.2", 200, noise_scale=0.2)]
+        >>> mixed = collect("disassemble", "data/disassemble/mixed", sources, seed=1)  # doctest: +SKIP
     """
 
     name: str
@@ -148,7 +154,7 @@ def collect(
 
     Example:
         >>> from torchrl_dalir.data import Source, collect
-        >>> demos = collect("disassemble", "data/demos", [Source("expert", 10)], successes_only=True)
+        >>> demos = collect("disassemble", "data/demos", [Source("expert", 10)], successes_only=True)  # doctest: +SKIP
     """
     spec = get_task(task)
     if not sources or any(s.num_trajectories < 0 for s in sources):

@@ -34,7 +34,14 @@ FORMAT_VERSION = 1
 
 @dataclass
 class DatasetMeta:
-    """The contents of ``meta.json``."""
+    """The contents of ``meta.json``.
+
+    Example:
+        >>> meta = DatasetMeta("reach", num_points=64, gamma=0.99, seed=0, sources=[])
+        >>> meta.shards = [{"chunk": 0, "num_trajectories": 2, "num_rows": 150}, {"chunk": 1, "num_trajectories": 1, "num_rows": 81}]
+        >>> meta.num_trajectories, meta.num_rows, meta.complete
+        (3, 231, False)
+    """
 
     task: str
     num_points: int
@@ -137,6 +144,22 @@ class DatasetWriter:
         root: the dataset directory.
         meta: what the dataset will hold; when ``root`` already holds a dataset, its plan must
             match (same task, points, gamma, seed and sources) or opening fails.
+
+    Example:
+        >>> import tempfile
+        >>> from torchrl_dalir.data import trajectory_rows
+        >>> done = torch.tensor([[False], [False], [True]])  # 3 actions, then a success
+        >>> episode = TensorDict({"point_cloud": torch.rand(3, 8, 3), "agent_pos": torch.rand(3, 4), "action": torch.rand(3, 4),
+        ...                       "next": {"point_cloud": torch.rand(3, 8, 3), "agent_pos": torch.rand(3, 4),
+        ...                                "reward": torch.zeros(3, 1), "success": done, "done": done}}, [3])
+        >>> writer = DatasetWriter(tempfile.mkdtemp(), DatasetMeta("synthetic", num_points=8, gamma=0.5, seed=0, sources=[]))
+        >>> for chunk in range(2):  # one trajectory per chunk
+        ...     writer.write_chunk(chunk, trajectory_rows(episode, trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.5))
+        >>> dataset = writer.finalize()  # joined, renumbered, marked complete
+        >>> dataset.num_trajectories, dataset.rows["trajectory_id"].tolist(), dataset.rows["completion_target"][:4].tolist()
+        (2, [0, 0, 0, 0, 1, 1, 1, 1], [0.125, 0.25, 0.5, 1.0])
+        >>> TrajectoryDataset.load(writer.root).num_trajectories  # memory-mapped, read-only
+        2
     """
 
     def __init__(self, root: str | Path, meta: DatasetMeta):
@@ -188,6 +211,18 @@ class TrajectoryDataset:
 
     ``rows`` holds one row per observation (see :mod:`torchrl_dalir.data.labels`);
     :meth:`replay_buffer` serves them through a TorchRL replay buffer without copying.
+
+    Example:
+        >>> from torchrl_dalir.data import trajectory_rows
+        >>> timed_out = torch.tensor([[False], [True]])  # 2 actions, then the step limit
+        >>> episode = TensorDict({"agent_pos": torch.rand(2, 4), "action": torch.rand(2, 4), "next": {"agent_pos": torch.rand(2, 4),
+        ...     "reward": torch.zeros(2, 1), "success": torch.zeros(2, 1, dtype=torch.bool), "done": timed_out}}, [2])
+        >>> rows = trajectory_rows(episode, trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.9)
+        >>> dataset = TrajectoryDataset(Path("in-memory"), DatasetMeta("synthetic", 8, 0.9, 0, []), rows)  # load() maps one from disk
+        >>> dataset.num_trajectories, len(dataset.trajectory(0)), dataset.quality_counts()
+        (1, 3, {'expert': 0, 'imperfect_success': 0, 'failed': 1})
+        >>> dataset.replay_buffer(batch_size=4).sample()["terminal_label"]
+        tensor([0., 0., 0., 0.])
     """
 
     def __init__(self, root: Path, meta: DatasetMeta, rows: TensorDict):

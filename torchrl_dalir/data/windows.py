@@ -4,7 +4,8 @@ Every step at which an action was taken anchors one window, the last steps of ev
 included. With ``obs_steps = 2`` and ``horizon = 16`` (DP3's setting), the window of step ``t``
 holds observations ``t-1, t``, actions ``t-1 .. t+14`` and the observation ``t + 8``:
 
-- before the episode start, observations and actions repeat the first ones (DP3's padding);
+- before the episode start, observations and actions repeat the first ones (DP3's padding; the
+  observations by the rule of :mod:`torchrl_dalir.envs.history`, the env's);
 - past the last action, actions repeat the last one; ``action_is_pad`` marks every padded
   chunk step, so a loss can ignore them;
 - past the final observation ``s_T``, the future is ``s_T`` itself and ``future_is_pad`` is set.
@@ -19,6 +20,7 @@ from tensordict import TensorDict
 
 from torchrl_dalir import keys
 from torchrl_dalir.data.storage import TrajectoryDataset
+from torchrl_dalir.envs.history import history_steps
 
 
 class TrajectoryWindows:
@@ -32,10 +34,20 @@ class TrajectoryWindows:
         observation_keys: the observation entries to gather (never the privileged state).
 
     Example:
-        >>> windows = TrajectoryWindows(dataset)
-        >>> batch = windows.sample(64, generator=torch.Generator().manual_seed(0))
-        >>> batch["point_cloud"].shape, batch["action_chunk"].shape
-        (torch.Size([64, 2, 512, 3]), torch.Size([64, 16, 4]))
+        >>> from pathlib import Path
+        >>> from torchrl_dalir.data import DatasetMeta, trajectory_rows
+        >>> T, success = 20, torch.arange(20)[:, None] == 19  # 20 actions, then a success; agent_pos is the step
+        >>> episode = TensorDict({"agent_pos": torch.arange(T * 1.0)[:, None], "action": torch.rand(T, 4), "next": {
+        ...     "agent_pos": torch.arange(1.0, T + 1)[:, None], "reward": torch.zeros(T, 1), "success": success, "done": success}}, [T])
+        >>> rows = trajectory_rows(episode, trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.9)
+        >>> windows = TrajectoryWindows(TrajectoryDataset(Path("in-memory"), DatasetMeta("synthetic", 8, 0.9, 0, []), rows))
+        >>> batch = windows[[0, 5]]  # the windows of steps 0 and 5
+        >>> batch["agent_pos"].squeeze(-1).tolist(), batch["obs_is_pad"].tolist()  # step 0's history repeats it
+        ([[0.0, 0.0], [4.0, 5.0]], [[True, False], [False, False]])
+        >>> batch["action_chunk"].shape, batch["future", "agent_pos"].squeeze(-1).tolist()  # 16 actions; 8 steps ahead
+        (torch.Size([2, 16, 4]), [8.0, 13.0])
+        >>> windows.sample(64, generator=torch.Generator().manual_seed(0))["agent_pos"].shape
+        torch.Size([64, 2, 1])
     """
 
     def __init__(
@@ -69,8 +81,8 @@ class TrajectoryWindows:
         start, num_actions, t = self._start[index, None], self._num_actions[index, None], self._t[index, None]
         rows = self.dataset.rows
 
-        obs_t = t + torch.arange(-(self.obs_steps - 1), 1)
-        obs_rows = start + obs_t.clamp(min=0)
+        obs_t, obs_is_pad = history_steps(t.squeeze(-1), self.obs_steps)
+        obs_rows = start + obs_t
         act_t = t - (self.obs_steps - 1) + torch.arange(self.horizon)
         act_rows = start + act_t.clamp(min=0).minimum(num_actions - 1)
         future_t = t.squeeze(-1) + self.future_offset
@@ -84,7 +96,7 @@ class TrajectoryWindows:
         return TensorDict(
             {
                 **{key: gather(key, obs_rows) for key in self.observation_keys},
-                keys.OBS_MASK: obs_t < 0,
+                keys.OBS_MASK: obs_is_pad,
                 keys.ACTION_CHUNK: gather(keys.ACTION, act_rows),
                 keys.ACTION_MASK: (act_t < 0) | (act_t >= num_actions),
                 keys.FUTURE: TensorDict(

@@ -6,13 +6,14 @@ from functools import cache
 
 import torch
 from torchrl.data import Categorical, Composite
-from torchrl.envs import CatFrames, EnvBase, GymWrapper, InitTracker, ParallelEnv, TransformedEnv, UnsqueezeTransform
+from torchrl.envs import EnvBase, GymWrapper, InitTracker, ParallelEnv, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.gym_like import default_info_dict_reader
 
 from torchrl_dalir import keys
 from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+from torchrl_dalir.envs.history import append_history
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 
 
@@ -47,7 +48,8 @@ def make_env(
         render: ``False`` gives a state-only env without ``point_cloud`` (for experts; ~10x faster).
         history: with ``history > 1``, ``point_cloud`` and ``agent_pos`` carry the last
             ``history`` observations (``[history, N, 3]``, ``[history, D]``), stacked by TorchRL's
-            ``CatFrames`` (the first observation repeats at an episode start, as DP3 pads).
+            ``CatFrames`` (the first observation repeats at an episode start, as DP3 pads; the rule of
+            :mod:`torchrl_dalir.envs.history`, shared with the training windows).
         pixels: with ``pixels > 0``, ``pixels`` holds an RGB render ``[pixels, pixels, 3]`` (uint8)
             from the task's camera at every step, for videos (TorchRL's ``VideoRecorder`` reads it;
             see :mod:`torchrl_dalir.evaluation.video`). ``0`` (the default) renders none.
@@ -55,9 +57,9 @@ def make_env(
 
     Example:
         >>> from torchrl_dalir import make_env
-        >>> env = make_env("disassemble", seed=0)
-        >>> rollout = env.rollout(5)
-        >>> rollout["point_cloud"].shape
+        >>> env = make_env("disassemble", seed=0)  # doctest: +SKIP
+        >>> rollout = env.rollout(5)  # doctest: +SKIP
+        >>> rollout["point_cloud"].shape  # doctest: +SKIP
         torch.Size([5, 512, 3])
     """
     check_at_least("num_points", num_points, 1)
@@ -69,10 +71,7 @@ def make_env(
     env.set_info_dict_reader(default_info_dict_reader([keys.SUCCESS], spec=success_spec))
     env = TransformedEnv(env, InitTracker())
     if history > 1:
-        stacked = [(keys.AGENT_POS, -2)] + ([(keys.POINT_CLOUD, -3)] if render else [])
-        for key, dim in stacked:
-            env.append_transform(UnsqueezeTransform(dim=dim, in_keys=[key]))
-            env.append_transform(CatFrames(N=history, dim=dim, in_keys=[key]))
+        append_history(env, history, [(keys.AGENT_POS, -2)] + ([(keys.POINT_CLOUD, -3)] if render else []))
     if seed is not None:
         env.set_seed(seed)
     return env

@@ -30,6 +30,14 @@ class TaskSpec:
         image_size: the depth image's side in pixels.
         agent_pos_dim: how many leading ``qpos`` entries (Adroit) or observation entries
             (MetaWorld: hand xyz and gripper opening) form the robot's proprioception.
+
+    Example:
+        >>> import dataclasses
+        >>> spec = get_task("disassemble")
+        >>> spec.suite, spec.env_id, spec.max_steps, spec.agent_pos_dim
+        ('metaworld', 'disassemble-v3', 200, 4)
+        >>> dataclasses.replace(spec, max_steps=80).max_steps  # a variant, e.g. for make_env(spec)
+        80
     """
 
     name: str

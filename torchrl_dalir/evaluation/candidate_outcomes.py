@@ -23,6 +23,7 @@ from tqdm.auto import tqdm
 
 from torchrl_dalir import keys
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+from torchrl_dalir.envs.history import latest_history
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 from torchrl_dalir.reranking.actor import RerankingActor
 from torchrl_dalir.seeds import eval_episode_seed
@@ -46,20 +47,25 @@ def _execute(env: PointCloudObservation, actions: np.ndarray) -> tuple[list[dict
     return observations, success, ended
 
 
-def _base_chunk(policy, history: list[dict], generator: torch.Generator, device: torch.device) -> np.ndarray:
-    """The executed actions of one base-policy chunk (clean observations) for ``history``."""
-    cloud, agent_pos = (x[None] for x in _stack(history[-policy.config.obs_steps :], device))
+def _history(policy, observations: list[dict], device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The policy's input ``[1, To, ...]``: the history of the latest of an episode's ``observations``."""
+    return tuple(x[None] for x in _stack(latest_history(observations, policy.config.obs_steps), device))
+
+
+def _base_chunk(policy, observations: list[dict], generator: torch.Generator, device: torch.device) -> np.ndarray:
+    """The executed actions of one base-policy chunk (clean observations) after the episode's ``observations``."""
+    cloud, agent_pos = _history(policy, observations, device)
     chunk = policy.sample(policy.encode(cloud, agent_pos), generator)[0]
     return chunk[policy.config.executed].cpu().numpy()
 
 
-def _follow_through(env: PointCloudObservation, policy, history: list[dict], generator: torch.Generator, device: torch.device) -> bool:
-    """Runs the base policy from ``history`` until the episode ends; whether it succeeded."""
+def _follow_through(env: PointCloudObservation, policy, observations: list[dict], generator: torch.Generator, device: torch.device) -> bool:
+    """Runs the base policy after the episode's ``observations`` until the episode ends; whether it succeeded."""
     while True:
-        observations, success, ended = _execute(env, _base_chunk(policy, history, generator, device))
+        new_observations, success, ended = _execute(env, _base_chunk(policy, observations, generator, device))
         if ended:
             return success
-        history = history + observations
+        observations = observations + new_observations
 
 
 @torch.no_grad()
@@ -93,7 +99,6 @@ def candidate_outcomes(
         raise ValueError(f"the policy was trained on {policy.task!r}, not {spec.name!r}")
     if stride < 1:
         raise ValueError(f"stride must be at least 1, got {stride}")
-    obs_steps = policy.config.obs_steps
     device = next(policy.parameters()).device
     base_generator = torch.Generator().manual_seed(actor.seed + 1)  # skipped decisions and follow-throughs
     env = PointCloudObservation(make_simulator(spec), spec, policy.num_points)
@@ -101,36 +106,36 @@ def candidate_outcomes(
     try:
         for episode in tqdm(range(episodes), desc=f"candidate outcomes {spec.name}", disable=not progress, leave=False):
             observation, _ = env.reset(seed=eval_episode_seed(seed, episode))
-            history = [observation] * obs_steps
+            observations = [observation]  # the episode's so far
             for decision in range(decisions):
                 if decision % stride:
-                    clean_observations, _, ended = _execute(env, _base_chunk(policy, history, base_generator, device))
+                    clean_observations, _, ended = _execute(env, _base_chunk(policy, observations, base_generator, device))
                 else:
-                    record, clean_observations, ended = _try_candidates(actor, env, history, base_generator, follow_through, device)
+                    record, clean_observations, ended = _try_candidates(actor, env, observations, base_generator, follow_through, device)
                     records.append({"episode": episode, "decision": decision, **record})
                 if ended:
                     break
-                history = (history + clean_observations)[-obs_steps:]
+                observations = observations + clean_observations
     finally:
         env.close()
     return records
 
 
-def _try_candidates(actor: RerankingActor, env: PointCloudObservation, history: list[dict], base_generator, follow_through: bool, device):
-    """One decision's record; leaves ``env`` after the clean candidate's actions."""
-    cloud, agent_pos = (x[None] for x in _stack(history, device))
+def _try_candidates(actor: RerankingActor, env: PointCloudObservation, observations: list[dict], base_generator, follow_through: bool, device):
+    """One decision's record after the episode's ``observations``; leaves ``env`` after the clean candidate's actions."""
+    cloud, agent_pos = _history(actor.policy, observations, device)
     chunks, scores = actor.propose(cloud, agent_pos)
     imagined = actor.imagine(cloud, agent_pos, chunks)[0]
     executed = chunks[0, :, actor.policy.config.executed].cpu().numpy()
     start, outcomes, final_success = env.get_state(), [], []
     for k, actions in enumerate(executed):
         env.set_state(start)
-        observations, success, ended = _execute(env, actions)
-        outcomes.append((observations, success, ended))
+        outcome, success, ended = _execute(env, actions)
+        outcomes.append((outcome, success, ended))
         if k == 0:
             after_clean = env.get_state()
         if follow_through:
-            final_success.append(success if ended else _follow_through(env, actor.policy, history + observations, base_generator, device))
+            final_success.append(success if ended else _follow_through(env, actor.policy, observations + outcome, base_generator, device))
     env.set_state(after_clean)
     real = actor.encoder(*_stack([o[-1] for o, _, _ in outcomes], device))
     real_score = torch.sigmoid(actor.scorer(real))

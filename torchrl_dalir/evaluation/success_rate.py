@@ -21,6 +21,14 @@ from torchrl_dalir.seeds import check_eval_seed, eval_episode_seed
 
 @dataclass
 class EpisodeRecord:
+    """One evaluation episode: its index, reset seed, outcome, length and return.
+
+    Example:
+        >>> record = EpisodeRecord(episode=0, reset_seed=eval_episode_seed(0, 0), success=True, steps=42, episode_return=3.5)
+        >>> record.reset_seed  # episode 0 under evaluation seed 0: the same episode for every policy
+        1000000000
+    """
+
     episode: int
     reset_seed: int
     success: bool
@@ -31,6 +39,14 @@ class EpisodeRecord:
 
 @dataclass
 class EvaluationResult:
+    """What :func:`evaluate` returns: the task and one :class:`EpisodeRecord` per episode.
+
+    Example:
+        >>> result = EvaluationResult("reach", [EpisodeRecord(0, 1000000000, True, 42, 3.5), EpisodeRecord(1, 1000000001, False, 200, 0.7)])
+        >>> result.success_rate, result.to_dict()["episodes"][1]["steps"]
+        (0.5, 200)
+    """
+
     task: str
     episodes: list[EpisodeRecord]
 

@@ -128,6 +128,14 @@ class DoorScriptedPolicy(nn.Module):
 
     Args:
         gains: the controller's constants; the defaults are the tuned expert.
+
+    Example:
+        >>> DoorScriptedPolicy()(torch.zeros(3, 99)).shape  # builds the scene's MuJoCo model (no simulator runs)
+        torch.Size([3, 28])
+        >>> from torchrl_dalir import make_env
+        >>> from torchrl_dalir.experts import make_expert  # the same policy as a TensorDict module
+        >>> make_env("door", render=False).rollout(200, make_expert("door"))["next", "success"].any()  # doctest: +SKIP
+        tensor(True)
     """
 
     in_keys = [keys.PRIVILEGED_STATE]

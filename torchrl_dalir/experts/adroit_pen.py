@@ -36,6 +36,12 @@ class PenExpertPolicy(nn.Module):
     Only the gym observation (the first 45 entries) is read; it is normalised with the
     statistics gathered during training, then the actor's mean goes through ``tanh`` (the mean
     action of PPO's ``TanhNormal`` policy), so actions lie in ``[-1, 1]``.
+
+    Example:
+        >>> expert = PenExpertPolicy.load()  # the weights shipped with the package
+        >>> action = expert(torch.zeros(5, 105))
+        >>> action.shape, bool(action.abs().max() <= 1)
+        (torch.Size([5, 24]), True)
     """
 
     in_keys = [keys.PRIVILEGED_STATE]

@@ -36,6 +36,14 @@ class PolicyConfig:
             (FlowPolicy's consistency flow matching, meant for one Euler step).
         consistency_delta, consistency_segments, consistency_alpha: its time gap, number of
             path segments and velocity-term weight.
+
+    Example:
+        >>> config = PolicyConfig(kind="dp", down_dims=[64, 128, 256])
+        >>> config.horizon, config.obs_steps, config.executed  # 16-action chunks, actions 1 .. 8 executed
+        (16, 2, slice(1, 9, None))
+        >>> PolicyConfig(horizon=8)
+        Traceback (most recent call last):
+        ValueError: obs_steps - 1 + action_steps must not exceed the horizon
     """
 
     kind: str = "fm"

@@ -61,6 +61,21 @@ class ChunkPolicy3D(TensorDictModuleBase):
         state_dim: ``D``, the size of ``agent_pos``.
         in_keys: where it reads the point cloud and the robot state (default ``point_cloud``, ``agent_pos``).
         out_keys: where it writes the chunk (default ``action_chunk``).
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_dalir.modules import PolicyConfig, make_policy
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> isinstance(policy, ChunkPolicy3D), policy.in_keys, policy.out_keys
+        (True, ['point_cloud', 'agent_pos'], ['action_chunk'])
+        >>> policy.reset(seed=0)  # its own noise stream: the same observation, the same chunk
+        >>> observation = TensorDict(point_cloud=torch.rand(3, 2, 64, 3), agent_pos=torch.rand(3, 2, 4), batch_size=[3])
+        >>> chunk = policy(observation.clone())["action_chunk"]
+        >>> chunk.shape
+        torch.Size([3, 16, 4])
+        >>> policy.reset(seed=0)
+        >>> torch.equal(policy(observation.clone())["action_chunk"], chunk)
+        True
     """
 
     def __init__(

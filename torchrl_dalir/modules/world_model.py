@@ -37,6 +37,13 @@ class LatentEncoder(nn.Module):
     Args:
         point_normalizer, point_encoder, state_normalizer, state_encoder: modules with the
             interfaces of :class:`~torchrl_dalir.modules.ChunkPolicy3D`'s; use :meth:`from_policy`.
+
+    Example:
+        >>> from torchrl_dalir.modules import PolicyConfig, make_policy
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> encoder = LatentEncoder.from_policy(policy)  # a trainable copy of the policy's encoders
+        >>> encoder.latent_dim, encoder(torch.rand(5, 64, 3), torch.rand(5, 4)).shape
+        (128, torch.Size([5, 128]))
     """
 
     def __init__(self, point_normalizer, point_encoder, state_normalizer, state_encoder):

@@ -62,6 +62,21 @@ class RerankingActor(TensorDictModuleBase):
         in_keys: where it reads the point cloud and the robot state (default ``point_cloud``, ``agent_pos``).
         out_keys: where it writes the chosen chunk, the candidates' scores and the chosen index
             (default ``action_chunk``, :data:`CANDIDATE_SCORES`, :data:`CHOSEN_CANDIDATE`).
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> encoder = LatentEncoder.from_policy(policy)  # untrained parts here; from_checkpoints loads trained ones
+        >>> world_model = LatentWorldModel(encoder.latent_dim, action_dim=4, hidden=32, layers=1, heads=2)
+        >>> dalir = RerankingActor(policy, encoder, world_model, TaskCompletionScorer(encoder.latent_dim, hidden=32), num_candidates=4)
+        >>> observation = TensorDict(point_cloud=torch.rand(2, 64, 3), agent_pos=torch.rand(2, 4))  # a 2-step history
+        >>> decision = dalir(observation.clone())
+        >>> decision["action_chunk"].shape, decision["dalir", "candidate_scores"].shape
+        (torch.Size([16, 4]), torch.Size([4]))
+        >>> dalir.reset()  # replays its decisions from the start
+        >>> torch.equal(dalir(observation.clone())["action_chunk"], decision["action_chunk"])
+        True
     """
 
     def __init__(

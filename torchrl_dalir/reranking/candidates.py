@@ -73,6 +73,16 @@ class GaussianObservationNoise:
 
     Args:
         std: the noise's standard deviation, in world units (metres).
+
+    Example:
+        >>> from torchrl_dalir.modules import PolicyConfig, make_policy
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> cloud, agent_pos = torch.rand(2, 2, 64, 3), torch.rand(2, 2, 4)  # 2 observations, a 2-step history each
+        >>> conditions = GaussianObservationNoise(0.01).conditions(policy, cloud, agent_pos, 8, torch.Generator().manual_seed(0))
+        >>> conditions.shape  # [B, K, C]: the policy's condition for each of 8 candidates
+        torch.Size([2, 8, 256])
+        >>> torch.allclose(conditions[:, 0], policy.encode(cloud, agent_pos), atol=1e-6)  # candidate 0 is clean
+        True
     """
 
     def __init__(self, std: float = 0.01):
@@ -93,6 +103,13 @@ class CleanObservation:
     """No input perturbation: every candidate is sampled from the clean observation and they differ
     only by the policy's sampling noise (repeated queries of the frozen policy). The seeds of an
     action-space search (:mod:`~torchrl_dalir.reranking.search`); the observation is encoded once.
+
+    Example:
+        >>> from torchrl_dalir.modules import PolicyConfig, make_policy
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> conditions = CleanObservation().conditions(policy, torch.rand(1, 2, 64, 3), torch.rand(1, 2, 4), 8, None)
+        >>> conditions.shape, bool((conditions == conditions[:, :1]).all())  # 8 copies of the clean condition
+        (torch.Size([1, 8, 256]), True)
     """
 
     def conditions(self, policy, cloud, agent_pos, num_candidates: int, generator: torch.Generator) -> torch.Tensor:

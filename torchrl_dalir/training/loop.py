@@ -26,7 +26,13 @@ from torchrl_dalir.utils import UnsafeFileError, safe_torch_load
 
 @dataclass
 class OptimConfig:
-    """Optimiser, schedule and EMA settings (DP3's by default)."""
+    """Optimiser, schedule and EMA settings (DP3's by default).
+
+    Example:
+        >>> config = OptimConfig(lr=3e-4, warmup_steps=100)  # the cpu preset's, for the policy
+        >>> [round(ema_decay(step, config.ema_power, config.ema_max_decay), 4) for step in (0, 10, 1000, 10**7)]
+        [0.0, 0.8344, 0.9944, 0.9999]
+    """
 
     lr: float = 1e-4
     betas: tuple[float, float] = (0.95, 0.999)

@@ -30,7 +30,14 @@ POLICY_ENTRIES = ("task", "policy_config", "action_dim", "state_dim", "num_point
 
 @dataclass
 class PolicyTrainingConfig:
-    """``examples/train_policy.py``'s configuration; ``policy`` picks the backbone."""
+    """``examples/train_policy.py``'s configuration; ``policy`` picks the backbone.
+
+    Example:
+        >>> from torchrl_dalir.config import parse_config
+        >>> cfg = parse_config(PolicyTrainingConfig, ["preset=smoke", "task=reach"], PRESETS)  # defaults, preset, overrides
+        >>> cfg.model.down_dims, cfg.num_steps, cfg.optim.lr, cfg.run_dir().as_posix()
+        ([16, 32, 64], 30, 0.001, 'outputs/policies/reach/fm_seed0')
+    """
 
     task: str = "disassemble"
     policy: str = "fm"  # fm | dp

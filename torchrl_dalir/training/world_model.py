@@ -71,7 +71,14 @@ ENCODER_MODES = ("finetune", "frozen")
 
 @dataclass
 class WorldModelTrainingConfig:
-    """``examples/train_world_model.py``'s configuration (the paper's hyper-parameters by default)."""
+    """``examples/train_world_model.py``'s configuration (the paper's hyper-parameters by default).
+
+    Example:
+        >>> from torchrl_dalir.config import parse_config
+        >>> cfg = parse_config(WorldModelTrainingConfig, ["preset=smoke", "task=reach", "encoder=frozen"], PRESETS)
+        >>> cfg.wm_hidden, cfg.ensemble_members, cfg.run_dir().as_posix()  # the variant is in the run's name
+        (32, 2, 'outputs/world_models/reach/seed0_frozen')
+    """
 
     task: str = "disassemble"
     preset: str = "cpu"
