@@ -1,0 +1,121 @@
+"""The main job's stages in order: demos -> base policy -> mixed data -> (exploration data) ->
+world model -> calibration -> evaluation, one task and seed.
+
+Every stage writes an artifact under ``cfg.out`` and is skipped once that artifact is complete (a
+dataset marked complete in its ``meta.json``, a training at its last step); an interrupted stage
+resumes. ``redo=[world_model]`` runs that stage and the later ones again from scratch, keeping
+the previous runs aside. ``examples/train_dp3_wm.py`` is this function behind a command line.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from functools import partial
+from pathlib import Path
+
+from torchrl_dalir.data import Source, collect
+from torchrl_dalir.data.storage import is_complete
+from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, store_selection
+from torchrl_dalir.evaluation.compare import DALIR
+from torchrl_dalir.pipeline.config import STAGES, PipelineConfig
+from torchrl_dalir.pipeline.report import evaluate_and_report
+from torchrl_dalir.reranking.selection import SelectionConfig
+from torchrl_dalir.training import load_world_model, train_policy, train_world_model
+from torchrl_dalir.training.loop import training_finished
+from torchrl_dalir.training.policy import exploration_actor, policy_actor
+from torchrl_dalir.utils import atomic_write_text
+
+
+def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exists) -> None:
+    """Runs ``run`` unless ``finished(artifact)`` (a stage that ran to its end; an interrupted one runs again and resumes). A stage in ``cfg.redo`` starts from scratch:
+    its directory (the artifact's parent) is first moved aside to ``<dir>.replaced-<time>``.
+    Stages after ``cfg.until`` are not run."""
+    if STAGES.index(name) > STAGES.index(cfg.until):
+        return
+    if name in cfg.redo and artifact.parent.exists():
+        aside = artifact.parent.with_name(f"{artifact.parent.name}.replaced-{time.strftime('%Y%m%d-%H%M%S')}")
+        artifact.parent.rename(aside)
+        print(f"[{name}] redo: the previous run is kept in {aside}")
+    elif finished(artifact):
+        print(f"[{name}] done before: {artifact}")
+        return
+    start = time.perf_counter()
+    run()
+    print(f"[{name}] {time.perf_counter() - start:.0f} s -> {artifact}", flush=True)
+
+
+def run_pipeline(cfg: PipelineConfig) -> Path:
+    """Runs every stage of ``cfg`` up to ``cfg.until``, skipping finished ones; returns the
+    results folder (``results.md``, ``results.json``, diagnostic plots)."""
+    data = cfg.collection
+    common = dict(gamma=data.gamma, num_points=data.num_points, num_workers=data.num_workers, chunk_size=data.chunk_size, progress=data.progress)
+    policy_path = cfg.policy_training.run_dir() / "checkpoint.pt"
+    world_model_path = cfg.world_model.run_dir() / "world_model.pt"
+    results = cfg.results_dir()
+
+    # 1. Expert demos: successful expert trajectories only, the same for every training seed.
+    # (a dataset is done once its meta.json marks it complete, not when its rows exist: the two are not written at once)
+    stage("demos", cfg, data.demos_dir() / "meta.json", lambda: collect(
+        cfg.task, data.demos_dir(), [Source("expert", data.num_demos)], seed=cfg.demo_seed, successes_only=True, **common),
+        finished=dataset_finished)
+
+    # 2. The base policy learns from the demos alone (the data asymmetry).
+    # (an interrupted training leaves a checkpoint behind: the stage resumes it)
+    stage("policy", cfg, policy_path, lambda: train_policy(cfg.policy_training), finished=training_finished)
+
+    # 3. Mixed-quality data: noisy experts and rollouts of the trained base policy, all labeled.
+    base_rollouts = Source("base_policy", cfg.base_policy_rollouts, policy=partial(policy_actor, str(policy_path)), expert=False, history=2)
+    stage("mixed", cfg, data.mixed_dir() / "meta.json", lambda: collect(
+        cfg.task, data.mixed_dir(), [*data.mixed_sources(), base_rollouts], seed=2 * cfg.seed + 1,
+        noise_correlation=data.noise_correlation, **common), finished=dataset_finished)
+
+    # 3b. Optional exploration data: the base policy acting on point-dropout views.
+    if cfg.exploration_rollouts > 0:
+        explore = Source("exploration", cfg.exploration_rollouts, policy=partial(exploration_actor, str(policy_path), cfg.dropout, cfg.seed),
+                         expert=False, history=2)
+        stage("exploration", cfg, data.task_dir() / cfg.exploration_name() / "meta.json", lambda: collect(
+            cfg.task, data.task_dir() / cfg.exploration_name(), [explore], seed=2 * cfg.seed + 2, **common), finished=dataset_finished)
+
+    # 4. Latent encoder, task-completion scorer and latent world model, the policy frozen.
+    stage("world_model", cfg, world_model_path, lambda: train_world_model(cfg.world_model))
+
+    # 5. The selection rule's setting, chosen on validation episodes and stored in the world model.
+    # (done only if the world model holds this calibration: a retrained world model is calibrated again)
+    calibration = cfg.calibration_dir() / "calibration.json"
+    stage("calibration", cfg, calibration, lambda: calibrate_and_record(cfg, policy_path, world_model_path, calibration),
+          finished=lambda path: path.exists() and json.loads(path.read_text()) == load_world_model(world_model_path).calibration)
+
+    # 6. Base policy, DALI-R (calibrated rule and the paper's arg-max) and the random-candidate
+    #    control on the same test episodes.
+    # (done only if DALI-R was evaluated with the rule that the world model now names)
+    stage("evaluation", cfg, results / "results.json", lambda: evaluate_and_report(cfg, policy_path, world_model_path),
+          finished=lambda path: path.exists() and evaluated_rule(path) in (None, load_world_model(world_model_path).selection.name))
+    if cfg.until == STAGES[-1]:
+        print((results / "results.md").read_text())
+    return results
+
+
+def dataset_finished(meta_path: Path) -> bool:
+    """Whether the dataset whose ``meta.json`` is ``meta_path`` is complete."""
+    return is_complete(meta_path.parent)
+
+
+def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_path: Path, out: Path) -> None:
+    """Chooses the selection rule's setting on validation episodes (``calibration_episodes=0``:
+    the paper's arg-max) and stores it in the world model; the record also goes to ``out``."""
+    if cfg.calibration_episodes > 0:
+        record = calibrate(policy_path, world_model_path, grid=GRIDS[cfg.calibration_grid], alpha=cfg.calibration_alpha, episodes=cfg.calibration_episodes,
+                           seed=cfg.calibration_seed, test_seed=cfg.eval_seed, device=cfg.device, num_candidates=cfg.num_candidates,
+                           dropout=cfg.dropout, actor_seed=cfg.seed)
+        print(f"[calibration] chosen on {cfg.calibration_episodes} validation episodes: {record['chosen']}", flush=True)
+    else:
+        record = {"chosen": SelectionConfig().name, "episodes": 0}
+        store_selection(world_model_path, SelectionConfig(), record)
+    atomic_write_text(out, json.dumps(record, indent=1))
+
+
+def evaluated_rule(results_path: Path) -> str | None:
+    """The selection rule with which a finished evaluation ran DALI-R (``None``: it did not)."""
+    success = json.loads(results_path.read_text())["success"]
+    return success[DALIR].get("selection", "argmax(state)") if DALIR in success else None  # earlier runs: the arg-max
