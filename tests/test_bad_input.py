@@ -150,6 +150,38 @@ def test_point_dropout_refuses_empty_and_non_finite_clouds_and_keeps_float64():
     assert out.dtype == torch.float64 and out.shape == (4, 10, 3)  # a transform keeps the cloud's dtype
 
 
+def _nan_parameter(module):
+    with torch.no_grad():
+        next(module.parameters()).fill_(float("nan"))
+
+
+@pytest.mark.parametrize("actor", ["policy", "dalir", "dropout policy"])
+def test_a_finite_observation_that_overflows_the_policy_is_refused_not_acted_on(actor):
+    """A robot state of 1e30 is finite (not refused as input) but overflows the network into NaN actions: the
+    chunk is refused, naming the likely cause, instead of being executed (MuJoCo would reset) or scored."""
+    policy = _policy()
+    module = {"policy": policy, "dalir": _actor(policy), "dropout policy": DropoutPolicy(policy)}[actor]
+    observation = _observation()
+    observation[keys.AGENT_POS] = torch.full((2, 2, 4), 1e30)
+    message = r"action_chunk \(\d+, 16, 4\) holds \d+ NaN or infinite values: .* overflowed the network: most likely its robot state \(agent_pos"
+    with pytest.raises(ValueError, match=message):
+        module(observation)
+
+
+def test_a_policy_with_nan_weights_names_its_weights():
+    policy = _policy()
+    _nan_parameter(policy.unet)
+    with pytest.raises(ValueError, match=r"action_chunk \(2, 16, 4\) holds 128 NaN .* the policy's weights or normalizers hold NaN"):
+        policy(_observation())
+
+
+def test_dalir_refuses_nan_scores_instead_of_ranking_them():
+    actor = _actor(_policy())
+    _nan_parameter(actor.scorer)
+    with pytest.raises(ValueError, match=r"DALI-R's candidate_scores \(2, 1, 3\) holds 6 NaN or infinite values: .* world model"):
+        actor(_observation())
+
+
 # -- checkpoints ---------------------------------------------------------------------------------
 def _save_policy(policy, path, task="reach"):
     """A policy checkpoint as ``train_policy`` writes it (the entries ``load_policy`` reads)."""

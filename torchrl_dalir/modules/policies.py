@@ -42,6 +42,14 @@ def check_values(value: torch.Tensor, key: NestedKey) -> None:
         raise ValueError(f"{_name(key)} {tuple(value.shape)} holds {bad} NaN or infinite values: check the observation's source")
 
 
+def check_finite_output(value: torch.Tensor, what: str, cause: str) -> None:
+    """Refuses a module's output with NaN or infinite values, naming it, its shape and the likely ``cause``:
+    an env would execute NaN actions (MuJoCo resets the simulation) and a selection rule would rank NaN scores."""
+    if not torch.isfinite(value).all():
+        bad = int((~torch.isfinite(value)).sum())
+        raise ValueError(f"{what} {tuple(value.shape)} holds {bad} NaN or infinite values: {cause}")
+
+
 def check_point_cloud(cloud: torch.Tensor, key: NestedKey = keys.POINT_CLOUD) -> None:
     """Refuses a cloud that is not ``[..., N, 3]`` with ``N >= 1`` finite floating-point points, naming
     ``key`` and the shape (the policies, DALI-R's actor and :class:`PointDropout` share this check)."""
@@ -226,7 +234,18 @@ class ChunkPolicy3D(TensorDictModuleBase):
             raise ValueError(f"noise must be {(*batch_shape, *shape[1:])} (one chunk per condition), got {tuple(noise.shape)}")
         chunk = self.generate(flat, noise.reshape(shape).to(cond.dtype))
         chunk = self.action_normalizer.unnormalize(chunk).clamp(self.action_low, self.action_high)
+        if not torch.isfinite(chunk).all():
+            check_finite_output(chunk, "the policy's action_chunk", self._overflow_cause())
         return chunk.reshape(*batch_shape, *shape[1:])
+
+    def _overflow_cause(self) -> str:
+        """Why sampled chunks are not finite: damaged weights, or an observation that overflowed the network."""
+        if not all(value.isfinite().all() for value in self.state_dict().values() if value.is_floating_point()):
+            return ("the policy's weights or normalizers hold NaN or infinite values (a damaged checkpoint, or a training that "
+                    "diverged): load another checkpoint or train it again")
+        return ("an observation far outside what the policy was trained on overflowed the network: most likely its robot "
+                "state (agent_pos, whose range is not checked, unlike the cloud's), e.g. in other units than the env's; pass "
+                "observations as make_env gives them")
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase, generator: torch.Generator | None = None) -> TensorDictBase:

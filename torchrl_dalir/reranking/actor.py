@@ -11,7 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from torchrl_dalir import keys
 from torchrl_dalir.config import check_at_least
-from torchrl_dalir.modules.policies import ChunkPolicy3D
+from torchrl_dalir.modules.policies import ChunkPolicy3D, check_finite_output
 from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
 from torchrl_dalir.reranking.candidates import PointDropout
 from torchrl_dalir.reranking.search import SearchConfig, search_candidates
@@ -168,7 +168,10 @@ class RerankingActor(TensorDictModuleBase):
     def member_scores(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
         """Completion probabilities ``[B, E, K]`` of chunks ``[B, K, H, A]`` by each of the ``E``
         members of the selection's scorer (``E = 1`` for the state scorer)."""
-        return self._probabilities(self.imagine(cloud, agent_pos, chunks))
+        members = self._probabilities(self.imagine(cloud, agent_pos, chunks))
+        check_finite_output(members, "DALI-R's candidate_scores", "the latent encoder, world model or scorer gave NaN (damaged "
+                            "weights, or an observation far outside the training data): reload or retrain the world model")
+        return members
 
     @torch.no_grad()
     def objective(self, cloud: torch.Tensor, agent_pos: torch.Tensor):
