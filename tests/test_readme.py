@@ -30,3 +30,5 @@ def test_readme_torchrl_loop_runs(trained_world_model):
         torch.sigmoid(td[keys.COMPLETION_LOGIT][0]), rollout[CANDIDATE_SCORES][0, chosen], atol=1e-5, rtol=0
     )
     assert loss.in_keys == [keys.POINT_CLOUD, keys.AGENT_POS, "dense_reward_target"]
+    batch = namespace["batch"]
+    assert batch[keys.ACTION].shape == (2, 16, 4) and batch[CANDIDATE_SCORES].shape == (2, 16, 8)
