@@ -77,18 +77,34 @@ def plot_success_by_task(table: list[dict], path: str | Path, title: str = "",
     """Grouped bars of each method's success per task (mean over seeds, std as error bars, one dot
     per seed). ``table`` rows: ``task`` and, for every ``(key, label)`` of ``methods``, ``key``
     (a list of per-seed rates)."""
+    return plot_metric_by_task(table, path, "success (%)", title, methods, scale=100, ylim=(0, 100))
+
+
+def plot_metric_by_task(table: list[dict], path: str | Path, ylabel: str, title: str = "",
+                        methods: tuple[tuple[str, str], ...] = (("base", "base policy"), ("dalir", "+ DALI-R")),
+                        scale: float = 1.0, ylim: tuple[float, float] | None = None) -> Path:
+    """Grouped bars of each method's value of a metric per task, times ``scale`` (mean over seeds, std as
+    error bars, one dot per seed); ``table`` rows as for :func:`plot_success_by_task`, with per-seed values.
+
+    Example:
+        >>> table = [{"task": "drill", "with_action": [0.02], "without_action": [0.05]}]
+        >>> plot_metric_by_task(table, "/tmp/doc_mse.png", "held-out latent MSE",
+        ...                     methods=(("without_action", "WM w/o action"), ("with_action", "WM w/ action"))).name
+        'doc_mse.png'
+    """
     fig, ax = plt.subplots(figsize=(1.8 + 0.7 * len(methods) * len(table), 3.2), dpi=90)
     x = np.arange(len(table))
     width = 0.8 / len(methods)
     for i, (key, label) in enumerate(methods):
         offset = (i - (len(methods) - 1) / 2) * width
-        rates = [100 * np.asarray(row[key]) for row in table]
-        ax.bar(x + offset, [r.mean() for r in rates], width * 0.95, yerr=[r.std() for r in rates], capsize=3, label=label, alpha=0.8)
-        for j, r in enumerate(rates):
-            ax.scatter(np.full(len(r), x[j] + offset), r, color="k", s=8, zorder=3)
+        values = [scale * np.asarray(row[key]) for row in table]
+        ax.bar(x + offset, [v.mean() for v in values], width * 0.95, yerr=[v.std() for v in values], capsize=3, label=label, alpha=0.8)
+        for j, v in enumerate(values):
+            ax.scatter(np.full(len(v), x[j] + offset), v, color="k", s=8, zorder=3)
     ax.set_xticks(x, [row["task"] for row in table])
-    ax.set_ylabel("success (%)")
-    ax.set_ylim(0, 100)
+    ax.set_ylabel(ylabel)
+    if ylim is not None:
+        ax.set_ylim(*ylim)
     ax.legend(loc="upper right", fontsize=8)
     ax.set_title(title)
     return _save(fig, path)

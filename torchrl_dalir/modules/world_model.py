@@ -87,6 +87,9 @@ class LatentWorldModel(nn.Module):
         action_dim: size of an action.
         action_steps: chunk length ``k`` (the paper: 8).
         hidden, layers, heads: the Transformer (the paper: 256, 3, 4).
+        action_input: ``False`` makes the action-ablated model of the paper's Table 4: the action
+            tokens carry their position embeddings only, so the residual ignores the chunk (the same
+            tokens and weights, the actions' information removed).
 
     Example:
         >>> wm = LatentWorldModel(latent_dim=128, action_dim=4, hidden=32, layers=1, heads=2)
@@ -94,9 +97,11 @@ class LatentWorldModel(nn.Module):
         torch.Size([5, 128])
     """
 
-    def __init__(self, latent_dim: int, action_dim: int, action_steps: int = 8, hidden: int = 256, layers: int = 3, heads: int = 4):
+    def __init__(self, latent_dim: int, action_dim: int, action_steps: int = 8, hidden: int = 256, layers: int = 3, heads: int = 4,
+                 action_input: bool = True):
         super().__init__()
         self.latent_dim, self.action_dim, self.action_steps = latent_dim, action_dim, action_steps
+        self.action_input = action_input
         self.action_normalizer = MinMaxNormalizer(action_dim)
         self.latent_in = nn.Linear(latent_dim, hidden)
         self.action_in = nn.Linear(action_dim, hidden)
@@ -113,9 +118,10 @@ class LatentWorldModel(nn.Module):
         if actions.shape[-2:] != (self.action_steps, self.action_dim):
             raise ValueError(f"action chunks must be [..., {self.action_steps}, {self.action_dim}], got {tuple(actions.shape)}")
         batch = latent.shape[:-1]
-        tokens = torch.cat(
-            [self.latent_in(latent).unsqueeze(-2), self.action_in(self.action_normalizer(actions))], dim=-2
-        ) + self.position
+        action_tokens = self.action_in(self.action_normalizer(actions))
+        if not self.action_input:
+            action_tokens = torch.zeros_like(action_tokens)
+        tokens = torch.cat([self.latent_in(latent).unsqueeze(-2), action_tokens], dim=-2) + self.position
         hidden = self.transformer(tokens.reshape(-1, *tokens.shape[-2:]))
         return self.out(hidden[:, 0]).reshape(*batch, self.latent_dim)
 
