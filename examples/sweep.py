@@ -23,7 +23,7 @@ from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 EXAMPLES = Path(__file__).resolve().parent
 
@@ -65,7 +65,7 @@ def main(argv: list[str]) -> None:
         parse_config(PipelineConfig, run_arguments(cfg, *run), PRESETS)
     with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
         records = list(pool.map(lambda run: run_one(cfg, *run), runs))
-    atomic_write_text(Path(cfg.out) / "sweep.json", json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))
+    atomic_write(Path(cfg.out) / "sweep.json", json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))
     subprocess.run([sys.executable, str(EXAMPLES / "summarize_results.py"), f"out={cfg.out}"], check=True)
     failed = [r for r in records if r["exit_code"] != 0]
     if failed:

@@ -19,10 +19,11 @@ import time
 from functools import partial
 from pathlib import Path
 
+from torchrl_dalir.checkpoints import load_policy, load_world_model, store_selection, training_finished
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.data import Source, TrajectoryDataset, collect
 from torchrl_dalir.data.storage import is_complete
-from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, store_selection
+from torchrl_dalir.evaluation.calibration import GRIDS, calibrate
 from torchrl_dalir.evaluation.compare import (
     ARGMAX,
     BASE,
@@ -35,10 +36,9 @@ from torchrl_dalir.evaluation.diagnostics import imagination_curves
 from torchrl_dalir.evaluation.plots import plot_imagination_diagnostics
 from torchrl_dalir.pipeline import PRESETS, STAGES, PipelineConfig
 from torchrl_dalir.reranking.selection import SelectionConfig
-from torchrl_dalir.training import load_policy, load_world_model, train_policy, train_world_model
-from torchrl_dalir.training.loop import training_finished
+from torchrl_dalir.training import train_policy, train_world_model
 from torchrl_dalir.training.policy import exploration_actor, policy_actor
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 
 def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exists) -> None:
@@ -124,7 +124,7 @@ def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_pat
     else:
         record = {"chosen": SelectionConfig().name, "episodes": 0}
         store_selection(world_model_path, SelectionConfig(), record)
-    atomic_write_text(out, json.dumps(record, indent=1))
+    atomic_write(out, json.dumps(record, indent=1))
 
 
 def evaluated_rule(results_path: Path) -> str | None:
@@ -182,8 +182,8 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
         f"Diagnostics: {plot.name}",
         "",
     ])
-    atomic_write_text(results / "results.md", table)
-    atomic_write_text(results / "results.json", json.dumps(
+    atomic_write(results / "results.md", table)
+    atomic_write(results / "results.json", json.dumps(
         {"config": config_dict(cfg), "success": rows, "world_model_metrics": metrics, "diagnostics": curves}, indent=1))
 
 
