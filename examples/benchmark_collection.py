@@ -19,7 +19,7 @@ from pathlib import Path
 
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.data import Source, collect
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 
 @dataclass
@@ -51,7 +51,7 @@ def main(argv: list[str]) -> None:
                      "trajectories": cfg.trajectories, "bytes_per_trajectory": size // cfg.trajectories})
         print(f"{cfg.task}: {workers} worker(s): {steps} env steps in {seconds:.1f} s = {steps / seconds:.0f} steps/s; "
               f"{size / cfg.trajectories / 2**20:.2f} MiB per trajectory on disk", flush=True)
-    atomic_write_text(Path(cfg.out) / f"collection_{cfg.task}.json", json.dumps(rows, indent=1))
+    atomic_write(Path(cfg.out) / f"collection_{cfg.task}.json", json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.evaluation.timing import median_ms
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.training import POLICY_PRESETS, WORLD_MODEL_PRESETS, WorldModelTrainingConfig
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 
 @dataclass
@@ -68,7 +68,7 @@ def main(argv: list[str]) -> None:
     for n in cfg.candidates:
         lines.append(f"| {n} | " + " | ".join(f"{r[f'dalir_{n}_ms']:.1f} ({r[f'dalir_{n}_ms'] / r['base_policy_ms']:.2f})" for r in rows) + " |")
     print("\n".join(lines))
-    atomic_write_text(cfg.out, json.dumps({"config": config_dict(cfg), "rows": rows, "table": lines}, indent=1))
+    atomic_write(cfg.out, json.dumps({"config": config_dict(cfg), "rows": rows, "table": lines}, indent=1))
 
 
 if __name__ == "__main__":

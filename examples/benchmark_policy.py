@@ -20,12 +20,12 @@ from pathlib import Path
 import torch
 
 from torchrl_dalir import keys
+from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.evaluation.timing import median_ms
-from torchrl_dalir.training import load_policy
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 
 @dataclass
@@ -96,7 +96,7 @@ def main(argv: list[str]) -> None:
                 row[f"diversity_{name}"] = sum(d[name] for d in diversity) / len(diversity)
             rows.append(row)
             print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
-    atomic_write_text(cfg.out, json.dumps(rows, indent=1))
+    atomic_write(cfg.out, json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.modules import PolicyConfig, make_policy
 from torchrl_dalir.objectives import FlowMatchingLoss
 from torchrl_dalir.training.precision import autocast_dtype, native_bf16
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 
 @dataclass
@@ -76,7 +76,7 @@ def main(argv: list[str]) -> None:
     for name, value in medians.items():
         print(f"{name}: {value:.3f} s per training step (median of {cfg.repeats})")
     print(f"bf16 / fp32: {result['bf16_over_fp32']:.2f}x")
-    atomic_write_text(Path(cfg.out), json.dumps(result, indent=1))
+    atomic_write(Path(cfg.out), json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.evaluation.calibration import ALPHA, GRIDS, TEST_SEED, VALIDATION_SEED, calibrate
 from torchrl_dalir.evaluation.compare import check_evaluation_settings
 from torchrl_dalir.seeds import check_eval_seed
-from torchrl_dalir.utils import atomic_write_text, writable_dir
+from torchrl_dalir.utils import atomic_write, writable_dir
 
 
 @dataclass
@@ -62,7 +62,7 @@ def main(argv: list[str]) -> None:
         test = entry["vs_base"]
         print(f"{entry['name']:48s} {entry['success_rate']:7.1%}   only base / only rule {test['base_only']:2d} / {test['dalir_only']:2d}")
     print(f"chosen: {record['chosen']}" + (f" (written to {cfg.world_model})" if cfg.write else ""))
-    atomic_write_text(out / "calibration.json", json.dumps({"config": config_dict(cfg), **record}, indent=1))
+    atomic_write(out / "calibration.json", json.dumps({"config": config_dict(cfg), **record}, indent=1))
 
 
 if __name__ == "__main__":

@@ -37,7 +37,8 @@ import torch
 
 from torchrl_dalir.config import check_at_least, config_dict, parse_config
 from torchrl_dalir.data import TrajectoryDataset
-from torchrl_dalir.utils import atomic_write_text, safe_torch_load
+from torchrl_dalir.checkpoints import safe_torch_load
+from torchrl_dalir.utils import atomic_write
 
 JOB = Path(__file__).resolve().parent / "train_dp3_wm.py"
 # the main job's line when a stage has run to its end (with its seconds), or was found done before
@@ -281,7 +282,7 @@ def reference_run(cfg: Config, reference_dir: Path) -> dict:
         **result,
         "stages": {name: (round(max(end - int(logged[name]), 0.0), 1), end) for name, end in ends.items()},
     }
-    atomic_write_text(record, json.dumps(reference, indent=1))
+    atomic_write(record, json.dumps(reference, indent=1))
     return reference
 
 
@@ -337,7 +338,7 @@ def main(argv: list[str]) -> None:
         record = trial(cfg, out / f"trial_{i}", i, spans, rng)
         report["trials"].append(record)
         report["wall_seconds"] = round(time.perf_counter() - started, 1)
-        atomic_write_text(out / "crash_trials.json", json.dumps(report, indent=1))
+        atomic_write(out / "crash_trials.json", json.dumps(report, indent=1))
         stages = ", ".join(f"{k['killed_in_stage']} after {k['killed_after_seconds']:.0f} s" for k in record["kills"])
         verdict = "identical" if record["identical"] else "DIFFERENT: " + ", ".join(record["differing"])
         print(f"[crash_trials] trial {i}: killed in {stages} -> {verdict}", flush=True)

@@ -28,7 +28,7 @@ from torchrl_dalir.evaluation.compare import check_evaluation_settings
 from torchrl_dalir.evaluation.plots import plot_candidate_outcomes
 from torchrl_dalir.reranking import PointDropout
 from torchrl_dalir.reranking.selection import SelectionConfig
-from torchrl_dalir.utils import atomic_write_text, writable_dir
+from torchrl_dalir.utils import atomic_write, writable_dir
 
 
 @dataclass
@@ -67,7 +67,7 @@ def main(argv: list[str]) -> dict:
     summary = summarize_candidate_outcomes(records)
     for key, value in summary.items():
         print(f"{key:28s} {value:.4g}" if isinstance(value, float) else f"{key:28s} {value}")
-    atomic_write_text(out / "candidate_outcomes.json", json.dumps({"config": config_dict(cfg), "summary": summary, "records": records}, indent=1))
+    atomic_write(out / "candidate_outcomes.json", json.dumps({"config": config_dict(cfg), "summary": summary, "records": records}, indent=1))
     plot_candidate_outcomes(records, out / "candidate_outcomes.png", title=f"{task}: DALI-R's candidates, imagined vs real")
     return summary
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.evaluation.compare import check_evaluation_settings, evaluate_checkpoints
 from torchrl_dalir.reranking.selection import SelectionConfig
-from torchrl_dalir.utils import atomic_write_text, writable_dir
+from torchrl_dalir.utils import atomic_write, writable_dir
 
 
 @dataclass
@@ -57,14 +57,14 @@ def main(argv: list[str]) -> None:
     print(f"\n{'method':16s} {'success':>8s} {'episodes':>9s} {'seconds':>8s}")
     for name, row in rows.items():
         print(f"{name:16s} {row['success_rate']:8.1%} {row['episodes']:9d} {row['seconds']:8.1f}")
-    atomic_write_text(out / "evaluation.json", json.dumps({"config": config_dict(cfg), "success": rows}, indent=1))
+    atomic_write(out / "evaluation.json", json.dumps({"config": config_dict(cfg), "success": rows}, indent=1))
     table = io.StringIO()
     details = sorted({key for row in rows.values() for record in row["records"] for key in record["details"]})
     writer = csv.DictWriter(table, ["method", "episode", "reset_seed", "success", "steps", "episode_return", *details])
     writer.writeheader()
     for name, row in rows.items():
         writer.writerows({"method": name, **{k: v for k, v in record.items() if k != "details"}, **record["details"]} for record in row["records"])
-    atomic_write_text(out / "evaluation.csv", table.getvalue())
+    atomic_write(out / "evaluation.csv", table.getvalue())
 
 
 if __name__ == "__main__":

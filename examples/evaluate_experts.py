@@ -19,7 +19,7 @@ from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.evaluation import evaluate
 from torchrl_dalir.experts import add_drift_noise, make_expert
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 
 @dataclass
@@ -50,7 +50,7 @@ def main(argv: list[str]) -> None:
             print(f"{task:18s} noise {scale:5.2f}  success {result.success_rate:6.1%}  ({cfg.episodes} episodes, "
                   f"{steps_per_s:.0f} env steps/s with the env)", flush=True)
     out = Path(cfg.out)
-    atomic_write_text(out / "experts.json", json.dumps({"config": config_dict(cfg), "rows": rows}, indent=2))
+    atomic_write(out / "experts.json", json.dumps({"config": config_dict(cfg), "rows": rows}, indent=2))
 
 
 if __name__ == "__main__":

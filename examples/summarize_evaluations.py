@@ -20,7 +20,7 @@ from pathlib import Path
 
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.evaluation.compare import BASE, paired_sign_test
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 
 @dataclass
@@ -67,8 +67,8 @@ def main(argv: list[str]) -> None:
     print(table)
     out = Path(cfg.out)
     command = " ".join(["python examples/summarize_evaluations.py", *argv])
-    atomic_write_text(out, json.dumps({"command": command, "runs": {t: sorted(e["methods"]) for t, e in tasks.items()}, "tasks": tasks}, indent=1))
-    atomic_write_text(out.with_suffix(".md"), table + "\n")
+    atomic_write(out, json.dumps({"command": command, "runs": {t: sorted(e["methods"]) for t, e in tasks.items()}, "tasks": tasks}, indent=1))
+    atomic_write(out.with_suffix(".md"), table + "\n")
 
 
 if __name__ == "__main__":

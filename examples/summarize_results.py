@@ -28,7 +28,7 @@ from torchrl_dalir.config import parse_config
 from torchrl_dalir.evaluation.compare import METHODS, paired_sign_test
 from torchrl_dalir.evaluation.paper import TABLE1, TABLE1_TASKS
 from torchrl_dalir.evaluation.plots import plot_success_by_task
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 PAPER = "paper"  # the paper's world model and data (no variant)
 TRUSTED = (("base", "base policy"), ("dalir", "DALI-R, calibrated rule"), ("argmax", "DALI-R, arg-max (paper)"), ("random", "random candidate"))
@@ -198,8 +198,8 @@ def main(argv: list[str]) -> None:
         raise FileNotFoundError(f"no results under {root / 'results'}; run examples/train_dp3_wm.py first")
     text = summary_table(table)
     print(text)
-    atomic_write_text(root / "summary.md", text)
-    atomic_write_text(root / "summary.json", json.dumps(table, indent=1))
+    atomic_write(root / "summary.md", text)
+    atomic_write(root / "summary.json", json.dumps(table, indent=1))
     for policy in sorted({row["policy"] for row in table}):
         rows = [row for row in table if row["policy"] == policy and row["variant"] == cfg.variant]
         if rows:
@@ -208,9 +208,9 @@ def main(argv: list[str]) -> None:
     if trusted:
         text = trusted_table(trusted)
         print(text)
-        atomic_write_text(root / "trusted_selection.md", text)
+        atomic_write(root / "trusted_selection.md", text)
         for path in [root / "trusted_selection.json", *([Path(cfg.trusted_json)] if cfg.trusted_json else [])]:
-            atomic_write_text(path, json.dumps(trusted, indent=1) + "\n")
+            atomic_write(path, json.dumps(trusted, indent=1) + "\n")
         for policy in sorted({row["policy"] for row in table}):
             rows = trusted_rows(table, policy, cfg.variant)
             if rows:
@@ -221,9 +221,9 @@ def main(argv: list[str]) -> None:
             raise FileNotFoundError(f"no runs of variant {cfg.variant!r} on the paper's tasks {TABLE1_TASKS} under {root / 'results'}")
         text = table1_markdown(data)
         print(text)
-        atomic_write_text(root / "table1.md", text)
+        atomic_write(root / "table1.md", text)
         for path in (root / "table1.json", Path(cfg.table1_json)):
-            atomic_write_text(path, json.dumps(data, indent=1) + "\n")
+            atomic_write(path, json.dumps(data, indent=1) + "\n")
         for backbone in data:
             rows = [{"task": task, "base": [v / 100 for v in t["base"]], "dalir": [v / 100 for v in t["dalir"]]} for task, t in data[backbone].items()]
             plot_success_by_task(rows, root / f"table1_{backbone}.png", title=f"Table 1 ({backbone.upper()}): base policy and DALI-R")

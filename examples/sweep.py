@@ -21,7 +21,7 @@ from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
-from torchrl_dalir.utils import atomic_write_text, run_logged
+from torchrl_dalir.utils import atomic_write, run_logged
 
 EXAMPLES = Path(__file__).resolve().parent
 
@@ -57,7 +57,7 @@ def main(argv: list[str]) -> None:
         parse_config(PipelineConfig, run_arguments(cfg, *run), PRESETS)
     with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
         records = list(pool.map(lambda run: run_one(cfg, *run), runs))
-    atomic_write_text(Path(cfg.out) / "sweep.json", json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))
+    atomic_write(Path(cfg.out) / "sweep.json", json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))
     subprocess.run([sys.executable, str(EXAMPLES / "summarize_results.py"), f"out={cfg.out}"], check=True)
     failed = [r for r in records if r["exit_code"] != 0]
     if failed:

@@ -25,14 +25,14 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.envs import get_task
 from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints
 from torchrl_dalir.evaluation.plots import plot_success_by_task
 from torchrl_dalir.reranking import CleanObservation, GaussianObservationNoise, PointDropout, SearchConfig
 from torchrl_dalir.reranking.selection import SelectionConfig
-from torchrl_dalir.training import load_policy
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 INPUT_SOURCES = {"dropout": "point dropout", "noise": "observation noise", "resample": "policy samples"}
 SEARCH_SOURCES = {"shooting": "random shooting", "cem": "CEM", "mppi": "MPPI", "gradient": "score-gradient ascent"}
@@ -119,8 +119,8 @@ def main(argv: list[str]) -> None:
     text = markdown(table, keys, labels)
     print(text)
     out = Path(cfg.out)
-    atomic_write_text(out / "table2.md", text)
-    atomic_write_text(out / "table2.json", json.dumps({"config": config_dict(cfg), "table": table, "runs": runs}, indent=1))
+    atomic_write(out / "table2.md", text)
+    atomic_write(out / "table2.json", json.dumps({"config": config_dict(cfg), "table": table, "runs": runs}, indent=1))
     plot_success_by_task(table, out / "table2.png", title="Where candidate diversity comes from",
                          methods=tuple((k, labels[k]) for k in keys))
 

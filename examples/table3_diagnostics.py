@@ -33,7 +33,7 @@ from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.evaluation.compare import ARGMAX, BASE
 from torchrl_dalir.evaluation.plots import plot_data_scale, plot_success_by_task
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
-from torchrl_dalir.utils import atomic_write_text, run_logged
+from torchrl_dalir.utils import atomic_write, run_logged
 
 EXAMPLES = Path(__file__).resolve().parent
 PARTS = {"a": "scorer supervision", "b": "mixed-data scale"}
@@ -138,8 +138,8 @@ def main(argv: list[str]) -> None:
     print(text)
     out = Path(cfg.table_out)
     name = f"table3{cfg.part}"
-    atomic_write_text(out / f"{name}.md", text)
-    atomic_write_text(out / f"{name}.json", json.dumps({"config": config_dict(cfg), "part": PARTS[cfg.part], "table": table, "runs": runs}, indent=1))
+    atomic_write(out / f"{name}.md", text)
+    atomic_write(out / f"{name}.json", json.dumps({"config": config_dict(cfg), "part": PARTS[cfg.part], "table": table, "runs": runs}, indent=1))
     if cfg.part == "a":
         plot_success_by_task(table, out / f"{name}.png", title="Scorer supervision",
                              methods=(("base", "no scorer"), ("sparse", "sparse labels"), ("dense", "dense reward (oracle)")))

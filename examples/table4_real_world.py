@@ -34,7 +34,7 @@ from torchrl_dalir.config import check_at_least, config_dict, parse_config
 from torchrl_dalir.data import import_dp3_zarr, write_dp3_zarr
 from torchrl_dalir.evaluation.plots import plot_metric_by_task
 from torchrl_dalir.training.latent_dynamics import LatentDynamicsConfig, compare_action_input
-from torchrl_dalir.utils import atomic_write_text, writable_dir
+from torchrl_dalir.utils import atomic_write, writable_dir
 
 METHODS = {"without_action": "WM w/o action", "with_action": "WM w/ action", "no_change": "no change (s_t)"}
 MADE_DATA = "made store (synthetic, DP3 layout)"
@@ -211,8 +211,8 @@ def main(argv: list[str]) -> None:
     text = markdown(table, data) + (f"\n{note}\n" if note else "")
     print(text)
     command = " ".join(["python examples/table4_real_world.py", *argv])
-    atomic_write_text(out / "table4.md", text)
-    atomic_write_text(
+    atomic_write(out / "table4.md", text)
+    atomic_write(
         out / "table4.json",
         json.dumps(
             {"data": data, "note": note, "command": command, "config": config_dict(cfg), "table": table, "runs": runs},

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -38,9 +37,9 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 from tqdm import tqdm
 
+from torchrl_dalir.checkpoints import safe_torch_load, save_checkpoint
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.experts.adroit_pen import DEFAULT_WEIGHTS, OBS_DIM, PenExpertPolicy, make_actor_mlp
-from torchrl_dalir.utils import safe_torch_load
 
 
 @dataclass
@@ -279,13 +278,12 @@ def main(argv: list[str]) -> None:
         pbar.update(1)
         pbar.set_postfix(success=row["train_success"], eval=row["eval_success"], fps=row["fps"])
         if iteration % cfg.checkpoint_every == 0 or iteration == num_iters:
-            torch.save(
+            save_checkpoint(
+                ckpt_path,
                 {"iteration": iteration, "loss": loss_module.state_dict(), "optim": optim.state_dict(),
                  "vecnorm": env.transform.state_dict(), "torch_rng": torch.get_rng_state(), "best": best,
                  "wall_s": now - t0, "config": config_dict(cfg)},
-                ckpt_path.with_suffix(".tmp"),
             )
-            os.replace(ckpt_path.with_suffix(".tmp"), ckpt_path)
         t_iter = time.time()
     collector.shutdown()
     csv_file.close()

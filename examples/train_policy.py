@@ -15,12 +15,13 @@ import sys
 import time
 from dataclasses import dataclass
 
+from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.evaluation import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.seeds import check_eval_seed
-from torchrl_dalir.training import POLICY_PRESETS, PolicyTrainingConfig, load_policy, train_policy
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.training import POLICY_PRESETS, PolicyTrainingConfig, train_policy
+from torchrl_dalir.utils import atomic_write
 
 
 @dataclass
@@ -43,7 +44,7 @@ def main(argv: list[str]) -> None:
         policy = load_policy(path, cfg.device, task=cfg.task)
         actor = receding_horizon(policy)
         result = evaluate(actor, cfg.task, cfg.eval_episodes, cfg.eval_seed, num_points=policy.num_points, history=cfg.model.obs_steps, device=cfg.device, progress=cfg.progress)
-        atomic_write_text(path.parent / f"eval_seed{cfg.eval_seed}.json", json.dumps(result.to_dict(), indent=1))
+        atomic_write(path.parent / f"eval_seed{cfg.eval_seed}.json", json.dumps(result.to_dict(), indent=1))
         print(f"{cfg.task} {cfg.policy} seed {cfg.seed}: success {result.success_rate:.1%} over {cfg.eval_episodes} episodes")
 
 

@@ -12,8 +12,9 @@ from __future__ import annotations
 import json
 import sys
 
+from torchrl_dalir.checkpoints import load_world_model
 from torchrl_dalir.config import parse_config
-from torchrl_dalir.training import WORLD_MODEL_PRESETS, WorldModelTrainingConfig, load_world_model, train_world_model
+from torchrl_dalir.training import WORLD_MODEL_PRESETS, WorldModelTrainingConfig, train_world_model
 
 
 def main(argv: list[str]) -> None:

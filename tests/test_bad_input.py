@@ -15,6 +15,7 @@ from conftest import SHORT_REACH
 from tensordict import TensorDict
 
 from torchrl_dalir import RerankingActor, keys, make_env
+from torchrl_dalir.checkpoints import load_policy, load_world_model
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
 from torchrl_dalir.data.config import CollectionConfig
@@ -33,7 +34,7 @@ from torchrl_dalir.pipeline import PRESETS, PipelineConfig
 from torchrl_dalir.reranking import PointDropout
 from torchrl_dalir.reranking.candidates import DropoutPolicy
 from torchrl_dalir.seeds import eval_episode_seed
-from torchrl_dalir.training import POLICY_PRESETS, PolicyTrainingConfig, load_policy, load_world_model
+from torchrl_dalir.training import POLICY_PRESETS, PolicyTrainingConfig
 from torchrl_dalir.training.loop import OptimConfig, fit
 from torchrl_dalir.utils import weights_digest
 

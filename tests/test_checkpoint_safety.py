@@ -11,10 +11,16 @@ import pytest
 import torch
 
 from torchrl_dalir import RerankingActor
+from torchrl_dalir.checkpoints import (
+    UnsafeFileError,
+    load_checkpoint,
+    load_policy,
+    load_world_model,
+    safe_torch_load,
+    training_finished,
+)
 from torchrl_dalir.experts.adroit_pen import DEFAULT_WEIGHTS, PenExpertPolicy
-from torchrl_dalir.training import load_policy, load_world_model, train_policy
-from torchrl_dalir.training.loop import load_checkpoint, training_finished
-from torchrl_dalir.utils import UnsafeFileError, safe_torch_load
+from torchrl_dalir.training import train_policy
 
 EXAMPLES = pathlib.Path(__file__).parents[1] / "examples"
 

@@ -5,11 +5,11 @@ import dataclasses
 import pytest
 import torch
 
+from torchrl_dalir.checkpoints import load_checkpoint
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
 from torchrl_dalir.data.config import CollectionConfig
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
-from torchrl_dalir.training.loop import load_checkpoint
 
 
 @pytest.mark.parametrize(

@@ -22,8 +22,7 @@ POINTS = 40
 
 
 def _dalir(seed=3, **kwargs):
-    parts = _parts()
-    parts[0].task, parts[0].num_points = "reach", POINTS  # as load_policy sets them
+    parts = _parts(task="reach", num_points=POINTS)  # as load_policy builds it
     return RerankingActor(*parts, num_candidates=4, seed=seed, **kwargs)
 
 

@@ -82,8 +82,8 @@ def test_readme_snippet_builds_the_modules_from_a_checkpoint(trained_world_model
     from tensordict import TensorDict
     from tensordict.nn import TensorDictSequential
 
+    from torchrl_dalir.checkpoints import load_world_model
     from torchrl_dalir.modules import LatentEncoderModule, ScorerModule, WorldModelModule
-    from torchrl_dalir.training import load_world_model
 
     parts = load_world_model(world_model_checkpoint)     # the latent encoder, world model and scorer of one run
     imagine = TensorDictSequential(LatentEncoderModule(parts.encoder), WorldModelModule(parts.world_model), ScorerModule(parts.scorer))

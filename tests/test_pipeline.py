@@ -32,7 +32,7 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     assert (results / "imagination.png").stat().st_size > 0
     assert "| DALI-R |" in (results / "results.md").read_text() and "clean candidate kept in" in (results / "results.md").read_text()
     # the rule chosen on validation episodes is stored in the world model, and DALI-R used it
-    from torchrl_dalir.training import load_world_model
+    from torchrl_dalir.checkpoints import load_world_model
 
     calibration = json.loads((tmp_path / "calibration" / "reach" / f"{policy}_seed0" / "calibration.json").read_text())
     assert calibration["seed"] == 1 and calibration["episodes"] == 1
@@ -97,8 +97,8 @@ def test_sweep_refuses_unknown_tasks_before_running_anything(tmp_path, monkeypat
 
 
 def test_exploration_rollouts_join_the_world_models_data(tmp_path, monkeypatch):
+    from torchrl_dalir.checkpoints import load_world_model
     from torchrl_dalir.data import TrajectoryDataset
-    from torchrl_dalir.training import load_world_model
 
     quiet = ["collection.progress=false", "policy_training.progress=false", "world_model.progress=false"]
     run_example("train_dp3_wm.py", ["preset=smoke", "task=reach", f"out={tmp_path}", "exploration_rollouts=2", "until=world_model", *quiet],

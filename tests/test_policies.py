@@ -7,10 +7,11 @@ from tensordict import TensorDict
 from torchrl.collectors import Collector
 
 from torchrl_dalir import keys, make_env
+from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.modules import MinMaxNormalizer, PointCloudEncoder, PolicyConfig, make_policy
 from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.objectives import ConsistencyFlowMatchingLoss, DiffusionLoss, FlowMatchingLoss
-from torchrl_dalir.training import load_policy, train_policy
+from torchrl_dalir.training import train_policy
 
 TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, ddim_steps=3, euler_steps=3)
 

@@ -21,9 +21,10 @@ from torchrl_dalir.reranking import (
 TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, ddim_steps=2, euler_steps=2)
 
 
-def _parts(kind="fm", action_dim=4, seed=0):
+def _parts(kind="fm", action_dim=4, seed=0, **policy_fields):
+    """A tiny untrained policy (``policy_fields``: e.g. its ``task`` and ``num_points``), latent encoder, world model and scorer."""
     torch.manual_seed(seed)
-    policy = make_policy(PolicyConfig(kind=kind, **TINY), action_dim=action_dim, state_dim=4)
+    policy = make_policy(PolicyConfig(kind=kind, **TINY), action_dim=action_dim, state_dim=4, **policy_fields)
     policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, action_dim) * 2 - 1)
     encoder = LatentEncoder.from_policy(policy)
     world_model = LatentWorldModel(encoder.latent_dim, action_dim, 8, hidden=32, layers=1, heads=2)
@@ -178,8 +179,7 @@ def test_candidate_outcomes_try_every_candidate_from_the_same_state():
     from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
     from torchrl_dalir.seeds import eval_episode_seed
 
-    parts = _parts()
-    parts[0].task, parts[0].num_points = "reach", 40
+    parts = _parts(task="reach", num_points=40)
     records = candidate_outcomes(RerankingActor(*parts, num_candidates=4, seed=3), SHORT_REACH, episodes=1, decisions=2, progress=False)
     assert [r["decision"] for r in records] == [0, 1]
     first = records[0]
@@ -206,8 +206,7 @@ def test_candidate_outcomes_try_every_candidate_from_the_same_state():
 
 
 def test_candidate_outcomes_follow_through_every_stride_th_decision():
-    parts = _parts()
-    parts[0].task, parts[0].num_points = "reach", 40
+    parts = _parts(task="reach", num_points=40)
     task = dataclasses.replace(SHORT_REACH, max_steps=40)  # 5 decisions
 
     def run():

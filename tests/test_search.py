@@ -132,8 +132,8 @@ def test_table2_script_evaluates_every_source_on_the_same_episodes(tmp_path, mon
     from pathlib import Path
     from types import SimpleNamespace
 
+    import torchrl_dalir.checkpoints as checkpoints
     import torchrl_dalir.evaluation.compare as compare
-    import torchrl_dalir.training as training
     from torchrl_dalir.reranking import GaussianObservationNoise, PointDropout
 
     calls = []
@@ -145,7 +145,7 @@ def test_table2_script_evaluates_every_source_on_the_same_episodes(tmp_path, mon
         return {name: {"success_rate": rate, "episodes": kwargs["episodes"], "seconds": 0.0, "records": []}}
 
     monkeypatch.setattr(compare, "evaluate_checkpoints", fake_evaluate)
-    monkeypatch.setattr(training, "load_policy", lambda path, device: SimpleNamespace(task=Path(path).stem))
+    monkeypatch.setattr(checkpoints, "load_policy", lambda path, device: SimpleNamespace(task=Path(path).stem))
     script = Path(__file__).resolve().parents[1] / "examples" / "table2_candidates.py"
     args = ["policies=[stick-pull.pt,reach.pt]", "world_models=[a.pt,b.pt]", "episodes=3", "search.iterations=2", f"out={tmp_path}"]
     monkeypatch.setattr(sys, "argv", ["x", *args])

@@ -5,11 +5,11 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_dalir import RerankingActor, keys
+from torchrl_dalir.checkpoints import load_world_model
 from torchrl_dalir.evaluation import calibration
 from torchrl_dalir.modules import ScorerEnsemble, TaskCompletionScorer
 from torchrl_dalir.objectives import ImaginedCompletionLoss
 from torchrl_dalir.reranking.selection import SelectionConfig, select
-from torchrl_dalir.training import load_world_model
 
 # one decision, 3 ensemble members, 4 candidates (0 is the clean one)
 MEMBERS = torch.tensor([[

@@ -6,9 +6,10 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_dalir import RerankingActor, keys
+from torchrl_dalir.checkpoints import load_policy, load_world_model
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.objectives import LatentDynamicsLoss, TaskCompletionLoss
-from torchrl_dalir.training import load_policy, load_world_model, train_world_model
+from torchrl_dalir.training import train_world_model
 from torchrl_dalir.utils import weights_digest
 
 
@@ -138,7 +139,6 @@ def test_dense_reward_oracle_scorer(trained_world_model):
 
 def test_frozen_encoder_keeps_the_policys_encoder_and_trains_the_scorer_on_its_latents(trained_world_model):
     from torchrl_dalir.modules import LatentEncoder
-    from torchrl_dalir.training import load_policy
 
     cfg, finetuned_path, policy_path = trained_world_model
     frozen = dataclasses.replace(cfg, encoder="frozen", frozen_scorer_steps=40)

@@ -1,29 +1,55 @@
-"""Small shared helpers: atomic file writes, safe loading of torch files, digests of weights, logged job processes."""
+"""Small shared helpers: atomic file writes, writable folders, digests of weights, logged job processes."""
 
 from __future__ import annotations
 
 import hashlib
 import os
-import pickle
-import re
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 import torch
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Writes ``text`` to ``path`` so that a crash leaves either the old file or the new one."""
+_UMASK = os.umask(0)  # read once, at import (setting it is the only way to read it)
+os.umask(_UMASK)
+
+
+def atomic_write(path: str | Path, content: str | bytes | Callable[[BinaryIO], object]) -> None:
+    """Writes ``path`` so that a crash or an error leaves either the old file or the new one, never
+    half of one: the content goes to a temporary file next to it, is flushed to disk, then renamed
+    over ``path``. The library's one way to write a file that others read (JSON, checkpoints).
+
+    Args:
+        path: the file (its folder is created if needed).
+        content: text (written as UTF-8), bytes, or a function that writes to the open binary file,
+            e.g. ``functools.partial(torch.save, payload)``.
+
+    Example:
+        >>> import functools, tempfile, torch
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> atomic_write(folder / "result.json", '{"success_rate": 0.5}')
+        >>> atomic_write(folder / "weights.pt", functools.partial(torch.save, {"w": torch.ones(2)}))
+        >>> sorted(p.name for p in folder.iterdir())
+        ['result.json', 'weights.pt']
+        >>> oct((folder / "result.json").stat().st_mode & 0o777) == oct(0o666 & ~_UMASK)  # like open()'s
+        True
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            if callable(content):
+                content(f)
+            else:
+                f.write(content.encode() if isinstance(content, str) else content)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_UMASK)  # the permissions of a file made with open(): mkstemp's are owner-only
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -43,36 +69,6 @@ def writable_dir(path: str | Path, setting: str = "out") -> Path:
         raise ValueError(f"cannot write results to the folder {path} ({error.strerror or error}): "
                          f"pass {setting}=<a folder you can write to>") from None
     return path
-
-
-class UnsafeFileError(ValueError):
-    """A torch file holds a pickled object other than tensors and plain values: loading it could run code."""
-
-
-def safe_torch_load(path: str | Path, what: str = "torch file"):
-    """``torch.load`` (on the CPU) of a file of tensors and plain values (dict, list, tuple, str,
-    numbers, bool, None), with ``weights_only``: any other pickled object is refused instead of
-    built, as building it can run code planted in the file. Every error names ``path`` (and says
-    it is not a ``what`` if it is no torch file at all)."""
-    path = Path(path)
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except OSError as error:
-        if error.filename is not None:  # missing file, a directory, ...: the message already names the path
-            raise
-        cause = error  # the zip reader's "Invalid argument" for a truncated archive
-    except pickle.UnpicklingError as error:  # a refused object, or no pickle at all (a JSON file, ...)
-        cause = error.__context__ or error  # the inner error: torch's own message suggests weights_only=False
-        refused = re.search(r"GLOBAL (\S+)", str(cause))
-        if refused:
-            raise UnsafeFileError(
-                f"refused to load {path}: it holds a pickled {refused[1].rstrip('.')}, not only tensors and plain values, "
-                "and loading it could run code. Checkpoints of this library hold none: if this one was written by an "
-                "older version, retrain it; otherwise do not trust the file"
-            ) from None
-    except Exception as error:  # a truncated zip archive, an empty file, ...
-        cause = error
-    raise ValueError(f"{path} is not a {what}, or is truncated: {str(cause) or type(cause).__name__}") from cause
 
 
 def weights_digest(module: torch.nn.Module) -> str:

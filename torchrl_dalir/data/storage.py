@@ -27,7 +27,7 @@ from tensordict import TensorDict
 from torchrl.data import ReplayBuffer, TensorStorage
 
 from torchrl_dalir import keys
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 FORMAT_VERSION = 1
 
@@ -126,7 +126,7 @@ def _open_columns(directory: Path, num_rows: int) -> TensorDict:
 
 
 def _write_meta(root: Path, meta: DatasetMeta) -> None:
-    atomic_write_text(root / "meta.json", json.dumps(asdict(meta), indent=1))
+    atomic_write(root / "meta.json", json.dumps(asdict(meta), indent=1))
 
 
 def _memmap_atomically(rows: TensorDict, directory: Path) -> None:

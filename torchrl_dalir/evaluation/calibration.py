@@ -18,9 +18,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from torchrl_dalir.checkpoints import load_world_model, store_selection
 from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints, p_better, paired_sign_test
 from torchrl_dalir.reranking.selection import SelectionConfig
-from torchrl_dalir.training.loop import load_checkpoint, save_checkpoint
 
 TEST_SEED = 0  # the evaluation seed of the episodes that results report
 VALIDATION_SEED = 1
@@ -71,8 +71,8 @@ def calibrate(
         raise ValueError(f"calibration must not read the test episodes (evaluation seed {test_seed}); use another seed")
     if rule is not None and not any(entry.rule == rule for entry in grid):
         raise ValueError(f"no entry of the grid has rule {rule!r}: {[entry.name for entry in grid]}")
-    state = load_checkpoint(world_model_path, "world_model")  # fails now, not after the base policy's episodes
-    if "ensemble_state" not in state and any(entry.scorer == "ensemble" for entry in grid):
+    checkpoint = load_world_model(world_model_path)  # fails now, not after the base policy's episodes
+    if checkpoint.ensemble is None and any(entry.scorer == "ensemble" for entry in grid):
         raise ValueError(f"{world_model_path} has no scorer ensemble (written before version 0.2.0): retrain the world-model stage")
     common = dict(episodes=episodes, seed=seed, **evaluate_kwargs)
     base = evaluate_checkpoints(policy_path, world_model_path, methods=["base"], **common)[BASE]
@@ -99,12 +99,3 @@ def choose(entries: list[dict], rule: str | None = None, alpha: float = ALPHA) -
     family = [e for e in entries if rule is None or e["selection"]["rule"] == rule]
     eligible = [e for i, e in enumerate(family) if i == 0 or p_better(e["vs_base"]["base_only"], e["vs_base"]["dalir_only"]) <= alpha]
     return max(eligible, key=lambda e: e["success_rate"])  # max keeps the first of equals
-
-
-def store_selection(world_model_path: str | Path, selection: SelectionConfig, calibration: dict | None = None) -> None:
-    """Writes ``selection`` (and the calibration record) into a world-model checkpoint, atomically."""
-    state = load_checkpoint(world_model_path, "world_model")
-    if selection.scorer == "ensemble" and "ensemble_state" not in state:
-        raise ValueError(f"{world_model_path} has no scorer ensemble for {selection.name}")
-    state["selection"], state["calibration"] = selection.to_dict(), calibration
-    save_checkpoint(world_model_path, state)

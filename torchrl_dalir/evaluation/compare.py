@@ -10,6 +10,7 @@ import torch
 from scipy.stats import binomtest
 from tensordict import TensorDictBase
 
+from torchrl_dalir.checkpoints import load_policy, load_world_model
 from torchrl_dalir.config import check_at_least, check_probability
 from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
@@ -77,10 +78,6 @@ def evaluate_checkpoints(
     A method that repeats another's row (``argmax`` when the checkpoint's rule is the arg-max) is not run again,
     so has no videos of its own.
     """
-    from torchrl_dalir.training.loop import load_checkpoint
-    from torchrl_dalir.training.policy import load_policy
-    from torchrl_dalir.training.world_model import WORLD_MODEL_ENTRIES, check_trained_on
-
     check_evaluation_settings(episodes, seed, num_candidates, dropout, video=video)
     if video and video_dir is None:
         raise ValueError(f"video={video} needs video_dir=<folder> for the files")
@@ -92,9 +89,7 @@ def evaluate_checkpoints(
         raise ValueError(f"methods {methods} rerank candidates: they need a world_model_path")
     policy = load_policy(policy_path, device)
     if world_model_path is not None:  # fails now, not after the base policy's episodes
-        state = load_checkpoint(world_model_path, "world_model", WORLD_MODEL_ENTRIES)
-        check_trained_on(state, policy, world_model_path)
-        stored = SelectionConfig.stored_in(state)
+        stored = load_world_model(world_model_path, policy=policy).selection
     reranking = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
     rules = {"dalir": {"selection": selection} if selection is not None else {}, "argmax": {"selection": SelectionConfig()}, "random": {}}
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}

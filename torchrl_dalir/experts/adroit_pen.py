@@ -15,7 +15,7 @@ from torch import nn
 from torchrl.modules import MLP
 
 from torchrl_dalir import keys
-from torchrl_dalir.utils import safe_torch_load
+from torchrl_dalir.checkpoints.files import safe_torch_load, save_checkpoint
 
 OBS_DIM = 45  # AdroitHandPen-v1's observation: the leading part of the privileged state
 STATE_DIM = 105  # observation (45) + qpos (30) + qvel (30), see TaskSpec.privileged_state
@@ -73,7 +73,5 @@ class PenExpertPolicy(nn.Module):
         return policy.eval()
 
     def save(self, path: str | Path, metadata: dict | None = None) -> None:
-        """Writes the weights (normalisation included) and optional metadata (plain values)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({"state_dict": self.state_dict(), "metadata": metadata or {}}, path)
+        """Writes the weights (normalisation included) and optional metadata (plain values), atomically."""
+        save_checkpoint(path, {"state_dict": self.state_dict(), "metadata": metadata or {}})

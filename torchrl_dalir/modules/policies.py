@@ -5,7 +5,7 @@ Both read a 2-step history of ``point_cloud`` ``[..., To, N, 3]`` and ``agent_po
 they differ only in how a chunk is generated from noise (:meth:`ChunkPolicy3D.generate`).
 Inputs and outputs are in the env's units; min-max normalizers fitted on the demos live inside
 the module and are saved with it. Chunks are clamped to the env's action bounds (set by
-``load_policy``), so they hold the actions the simulator executes.
+:func:`~torchrl_dalir.checkpoints.load_policy`), so they hold the actions the simulator executes.
 """
 
 from __future__ import annotations
@@ -67,6 +67,9 @@ class ChunkPolicy3D(TensorDictModuleBase):
         config: the architecture.
         action_dim: ``A``.
         state_dim: ``D``, the size of ``agent_pos``.
+        task: the task it is trained on (stored in its checkpoint; an env of another task is refused).
+        num_points: the cloud size it is trained on (stored in its checkpoint; other clouds are refused).
+        checkpoint: the file it was loaded from (set by :func:`~torchrl_dalir.checkpoints.load_policy`).
         in_keys: where it reads the point cloud and the robot state (default ``point_cloud``, ``agent_pos``).
         out_keys: where it writes the chunk (default ``action_chunk``).
 
@@ -92,6 +95,9 @@ class ChunkPolicy3D(TensorDictModuleBase):
         action_dim: int,
         state_dim: int,
         *,
+        task: str | None = None,
+        num_points: int | None = None,
+        checkpoint: str | None = None,
         in_keys: Sequence[NestedKey] = (keys.POINT_CLOUD, keys.AGENT_POS),
         out_keys: Sequence[NestedKey] = (keys.ACTION_CHUNK,),
     ):
@@ -99,9 +105,7 @@ class ChunkPolicy3D(TensorDictModuleBase):
         self.in_keys, self.out_keys = list(in_keys), list(out_keys)
         self.config = config
         self.action_dim, self.state_dim = action_dim, state_dim
-        self.task: str | None = None  # the task and cloud size it was trained on (set by ``load_policy``)
-        self.num_points: int | None = None
-        self.checkpoint: str | None = None  # the file it was loaded from (set by ``load_policy``)
+        self.task, self.num_points, self.checkpoint = task, num_points, checkpoint
         self.point_normalizer = MinMaxNormalizer(3)
         self.state_normalizer = MinMaxNormalizer(state_dim)
         self.action_normalizer = MinMaxNormalizer(action_dim)
@@ -265,8 +269,8 @@ class DiffusionPolicy3D(ChunkPolicy3D):
         torch.Size([3, 16, 4])
     """
 
-    def __init__(self, config: PolicyConfig, action_dim: int, state_dim: int, **key_names):
-        super().__init__(config, action_dim, state_dim, **key_names)
+    def __init__(self, config: PolicyConfig, action_dim: int, state_dim: int, **kwargs):
+        super().__init__(config, action_dim, state_dim, **kwargs)
         from diffusers import DDIMScheduler
 
         self.scheduler = DDIMScheduler(
@@ -311,6 +315,7 @@ class FlowMatchingPolicy3D(ChunkPolicy3D):
         return x
 
 
-def make_policy(config: PolicyConfig, action_dim: int, state_dim: int, **key_names) -> ChunkPolicy3D:
-    """The policy class that ``config.kind`` names (``key_names``: its ``in_keys``/``out_keys``)."""
-    return {"dp": DiffusionPolicy3D, "fm": FlowMatchingPolicy3D}[config.kind](config, action_dim, state_dim, **key_names)
+def make_policy(config: PolicyConfig, action_dim: int, state_dim: int, **kwargs) -> ChunkPolicy3D:
+    """The policy class that ``config.kind`` names (``kwargs``: :class:`ChunkPolicy3D`'s keyword arguments,
+    ``task``, ``num_points``, ``checkpoint``, ``in_keys``, ``out_keys``)."""
+    return {"dp": DiffusionPolicy3D, "fm": FlowMatchingPolicy3D}[config.kind](config, action_dim, state_dim, **kwargs)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from torchrl_dalir.checkpoints import load_policy, load_world_model
 from torchrl_dalir.config import config_dict
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.evaluation.compare import (
@@ -19,8 +20,7 @@ from torchrl_dalir.evaluation.compare import (
 from torchrl_dalir.evaluation.diagnostics import imagination_curves
 from torchrl_dalir.evaluation.plots import plot_imagination_diagnostics
 from torchrl_dalir.pipeline.config import PipelineConfig
-from torchrl_dalir.training import load_policy, load_world_model
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 
 def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path: Path) -> None:
@@ -72,6 +72,6 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
         f"Diagnostics: {plot.name}",
         "",
     ])
-    atomic_write_text(results / "results.md", table)
-    atomic_write_text(results / "results.json", json.dumps(
+    atomic_write(results / "results.md", table)
+    atomic_write(results / "results.json", json.dumps(
         {"config": config_dict(cfg), "success": rows, "world_model_metrics": metrics, "diagnostics": curves}, indent=1))

@@ -14,17 +14,17 @@ import time
 from functools import partial
 from pathlib import Path
 
+from torchrl_dalir.checkpoints import load_world_model, store_selection, training_finished
 from torchrl_dalir.data import Source, collect
 from torchrl_dalir.data.storage import is_complete
-from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, store_selection
+from torchrl_dalir.evaluation.calibration import GRIDS, calibrate
 from torchrl_dalir.evaluation.compare import DALIR
 from torchrl_dalir.pipeline.config import STAGES, PipelineConfig
 from torchrl_dalir.pipeline.report import evaluate_and_report
 from torchrl_dalir.reranking.selection import SelectionConfig
-from torchrl_dalir.training import load_world_model, train_policy, train_world_model
-from torchrl_dalir.training.loop import training_finished
+from torchrl_dalir.training import train_policy, train_world_model
 from torchrl_dalir.training.policy import exploration_actor, policy_actor
-from torchrl_dalir.utils import atomic_write_text
+from torchrl_dalir.utils import atomic_write
 
 
 def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exists) -> None:
@@ -112,7 +112,7 @@ def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_pat
     else:
         record = {"chosen": SelectionConfig().name, "episodes": 0}
         store_selection(world_model_path, SelectionConfig(), record)
-    atomic_write_text(out, json.dumps(record, indent=1))
+    atomic_write(out, json.dumps(record, indent=1))
 
 
 def evaluated_rule(results_path: Path) -> str | None:

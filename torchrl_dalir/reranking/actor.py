@@ -10,6 +10,8 @@ from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_dalir import keys
+from torchrl_dalir.checkpoints.policy import load_policy
+from torchrl_dalir.checkpoints.world_model import load_world_model
 from torchrl_dalir.config import check_at_least
 from torchrl_dalir.modules.policies import ChunkPolicy3D, check_finite_output
 from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
@@ -132,18 +134,14 @@ class RerankingActor(TensorDictModuleBase):
     def from_checkpoints(cls, policy_path: str | Path, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
         """Loads a policy and the world model trained on top of it; refuses a world model of
         another task or another policy (by the digest of the policy's weights that it records)."""
-        from torchrl_dalir.training.policy import load_policy
-
         return cls.on_policy(load_policy(policy_path, device), world_model_path, device, **kwargs)
 
     @classmethod
     def on_policy(cls, policy: ChunkPolicy3D, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
         """Wraps an already loaded policy with the world model trained on top of it; refuses a
         world model of another task or another policy
-        (:func:`~torchrl_dalir.training.world_model.check_trained_on`). The selection rule is the
+        (:func:`~torchrl_dalir.checkpoints.check_trained_on`). The selection rule is the
         checkpoint's unless ``selection=`` is passed."""
-        from torchrl_dalir.training.world_model import load_world_model
-
         parts = load_world_model(world_model_path, device, policy=policy)
         kwargs.setdefault("selection", parts.selection)
         return cls(policy, parts.encoder, parts.world_model, parts.scorer, ensemble=parts.ensemble, **kwargs)

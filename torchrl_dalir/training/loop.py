@@ -6,7 +6,6 @@ a batch is drawn) is passed in.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -20,8 +19,14 @@ from torch.optim.swa_utils import AveragedModel
 from torchrl.objectives import LossModule
 from tqdm.auto import tqdm
 
+from torchrl_dalir.checkpoints.files import (
+    UnsafeFileError,
+    check_entries,
+    load_weights,
+    safe_torch_load,
+    save_checkpoint,
+)
 from torchrl_dalir.config import check_at_least
-from torchrl_dalir.utils import UnsafeFileError, safe_torch_load
 
 
 @dataclass
@@ -58,65 +63,8 @@ def make_ema(model: nn.Module, config: OptimConfig) -> AveragedModel:
     return AveragedModel(model, avg_fn=average, use_buffers=False)
 
 
-def save_checkpoint(path: str | Path, payload: dict) -> None:
-    """``torch.save`` to a temporary file, then an atomic rename: a crash never leaves half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
-
-
 # What a fit() checkpoint must hold to resume training.
 RESUME_ENTRIES = ("model", "ema", "optimizer", "schedule", "generator", "torch_rng", "step", "num_steps")
-
-
-def check_entries(state: dict, path: str | Path, entries, what: str) -> None:
-    """Refuses a loaded checkpoint that lacks any of ``entries``, naming the file and the entries
-    (instead of a bare ``KeyError`` later)."""
-    missing = [entry for entry in entries if entry not in state]
-    if missing:
-        raise ValueError(
-            f"{path} is a damaged or incomplete {what}: it has no {', '.join(map(repr, missing))} "
-            f"entr{'y' if len(missing) == 1 else 'ies'}. Write it again (train the stage again, or copy the file anew)"
-        )
-
-
-def load_weights(module: nn.Module, state: dict, entry: str, path: str | Path) -> None:
-    """``module.load_state_dict(state[entry])``; weights that do not fit the module are reported with the file."""
-    try:
-        module.load_state_dict(state[entry])
-    except RuntimeError as error:
-        raise ValueError(f"{path}: the weights in {entry!r} do not fit the model the checkpoint describes: "
-                         f"{str(error).strip()}") from None
-
-
-def load_checkpoint(path: str | Path, kind: str, entries=()) -> dict:
-    """Loads a checkpoint written by this library and checks that it holds a ``kind`` model with
-    every one of ``entries``. Refuses (:class:`~torchrl_dalir.utils.UnsafeFileError`) a file
-    holding anything but tensors and plain values, before looking at its kind."""
-    path = Path(path)
-    if path.is_dir():
-        found = sorted(path.glob("*.pt"))
-        raise IsADirectoryError(f"{path} is a directory; pass the {kind} checkpoint file in it ({[p.name for p in found] or 'none found'})")
-    if not path.exists():
-        raise FileNotFoundError(f"no {kind} checkpoint at {path}")
-    state = safe_torch_load(path, f"torchrl_dalir {kind} checkpoint")
-    if not isinstance(state, dict) or state.get("kind") != kind:
-        raise ValueError(f"{path} is not a torchrl_dalir {kind} checkpoint")
-    check_entries(state, path, entries, f"{kind} checkpoint")
-    return state
-
-
-def training_finished(checkpoint_path: str | Path) -> bool:
-    """Whether a :func:`fit` checkpoint exists and holds the last step (not an interrupted run)."""
-    path = Path(checkpoint_path)
-    if not path.exists():
-        return False
-    state = safe_torch_load(path)
-    if not isinstance(state, dict):
-        raise ValueError(f"{path} is not a torchrl_dalir training checkpoint")
-    return state.get("step", 0) >= state.get("num_steps", float("inf"))
 
 
 def fit(

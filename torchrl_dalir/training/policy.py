@@ -1,4 +1,4 @@
-"""Training a base 3D policy on the expert demos only, and loading it back.
+"""Training a base 3D policy on the expert demos only (its checkpoint: :mod:`torchrl_dalir.checkpoints.policy`).
 
 The policy never sees the mixed-quality data: that is the data asymmetry of DALI-R.
 """
@@ -6,12 +6,13 @@ The policy never sees the mixed-quality data: that is the data asymmetry of DALI
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
 from torchrl_dalir import keys
+from torchrl_dalir.checkpoints.policy import load_policy, policy_entries
 from torchrl_dalir.config import check_at_least, check_choice, config_dict
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
@@ -21,11 +22,8 @@ from torchrl_dalir.modules import ChunkPolicy3D, PolicyConfig, make_policy
 from torchrl_dalir.modules.config import POLICY_KINDS
 from torchrl_dalir.objectives import ConsistencyFlowMatchingLoss, DiffusionLoss, FlowMatchingLoss
 from torchrl_dalir.training.logging import make_logger
-from torchrl_dalir.training.loop import OptimConfig, fit, load_checkpoint, load_weights
+from torchrl_dalir.training.loop import OptimConfig, fit
 from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
-
-# What a policy checkpoint must hold to be loaded (see ``train_policy``'s payload).
-POLICY_ENTRIES = ("task", "policy_config", "action_dim", "state_dim", "num_points", "policy_state")
 
 
 @dataclass
@@ -112,27 +110,19 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
     windows = TrajectoryWindows(demos, cfg.model.obs_steps, cfg.model.horizon, cfg.model.action_steps)
     rows = demos.rows
     acting = ~rows[keys.IS_FINAL]
-    policy = make_policy(cfg.model, action_dim=rows[keys.ACTION].shape[-1], state_dim=rows[keys.AGENT_POS].shape[-1])
+    policy = make_policy(
+        cfg.model,
+        action_dim=rows[keys.ACTION].shape[-1],
+        state_dim=rows[keys.AGENT_POS].shape[-1],
+        task=cfg.task,
+        num_points=demos.meta.num_points,
+    )
+    policy.set_action_bounds(*action_bounds(cfg.task))  # stored in its checkpoint: loading it needs no simulator
     policy.fit_normalizers(rows[keys.POINT_CLOUD], rows[keys.AGENT_POS], rows[keys.ACTION][acting])
     policy.to(cfg.device)
     num_steps = cfg.num_steps or cfg.epochs * math.ceil(len(windows) / cfg.batch_size)
     run_dir = cfg.run_dir()
     logger = make_logger(run_dir, f"{cfg.task}_{cfg.policy}_seed{cfg.seed}", use_wandb=cfg.wandb, config=config_dict(cfg))
-
-    def payload(ema_policy: ChunkPolicy3D) -> dict:
-        from torchrl_dalir import __version__
-
-        return {
-            "kind": "policy",
-            "task": cfg.task,
-            "config": config_dict(cfg),
-            "policy_config": asdict(ema_policy.config),
-            "action_dim": ema_policy.action_dim,
-            "state_dim": ema_policy.state_dim,
-            "num_points": demos.meta.num_points,
-            "policy_state": ema_policy.state_dict(),
-            "library_version": __version__,
-        }
 
     fit(
         _loss_module(policy),
@@ -141,7 +131,7 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
         num_steps,
         cfg.optim,
         run_dir / "checkpoint.pt",
-        payload,
+        lambda ema_policy: policy_entries(ema_policy, config_dict(cfg)),
         seed=cfg.seed,
         checkpoint_every=cfg.checkpoint_every,
         log=logger,
@@ -150,21 +140,6 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
         progress=cfg.progress,
     )
     return run_dir / "checkpoint.pt"
-
-
-def load_policy(path: str | Path, device: str | torch.device = "cpu", task: str | None = None, **key_names) -> ChunkPolicy3D:
-    """Loads the EMA policy of a checkpoint, in eval mode; refuses another task's policy.
-    ``key_names``: the policy's ``in_keys``/``out_keys`` if not the defaults."""
-    state = load_checkpoint(path, "policy", POLICY_ENTRIES)
-    if task is not None and state["task"] != task:
-        raise ValueError(f"{path} holds a policy for task {state['task']!r}, not {task!r}")
-    policy = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"], **key_names)
-    load_weights(policy, state, "policy_state", path)
-    policy.num_points = state["num_points"]  # the cloud size it was trained on
-    policy.task = state["task"]
-    policy.checkpoint = str(path)
-    policy.set_action_bounds(*action_bounds(state["task"]))  # its chunks hold what the env executes
-    return policy.to(device).eval()
 
 
 def policy_actor(path: str | Path, device: str = "cpu"):

@@ -23,42 +23,26 @@ see a step of a training trajectory.
 
 from __future__ import annotations
 
-import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 
 import torch
 from tensordict import TensorDict
 from torch import nn
 
 from torchrl_dalir import keys
+from torchrl_dalir.checkpoints import load_policy, save_world_model
 from torchrl_dalir.config import check_at_least, check_choice, config_dict
 from torchrl_dalir.data import TrajectoryDataset, dense_reward_targets
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.envs.tasks import get_task
-from torchrl_dalir.modules import (
-    ChunkPolicy3D,
-    LatentEncoder,
-    LatentWorldModel,
-    PolicyConfig,
-    ScorerEnsemble,
-    TaskCompletionScorer,
-    make_policy,
-)
+from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
 from torchrl_dalir.objectives import ImaginedCompletionLoss, LatentDynamicsLoss, TaskCompletionLoss
 from torchrl_dalir.objectives.imagined_completion import IMAGINED_LATENT
 from torchrl_dalir.objectives.latent_dynamics import LATENT
-from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training.logging import make_logger
-from torchrl_dalir.training.loop import OptimConfig, check_entries, fit, load_checkpoint, load_weights, save_checkpoint
-from torchrl_dalir.training.policy import load_policy
+from torchrl_dalir.training.loop import OptimConfig, fit
 from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
-from torchrl_dalir.utils import weights_digest
-
-# What a world-model checkpoint must hold to be loaded (the scorer ensemble is optional: older ones have none).
-WORLD_MODEL_ENTRIES = ("task", "policy_config", "action_dim", "state_dim", "world_model_args", "scorer_hidden", "encoder_state",
-                       "scorer_state", "world_model_state", "metrics", "policy_checkpoint", "held_out_trajectories")
 
 # The scorer's training target: the sparse terminal labels' Monte-Carlo targets (the method), or
 # the simulator's dense reward-to-go (an oracle, for the ablation).
@@ -312,33 +296,28 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     metrics.update(held_out_imagined_metrics(scorer, ensemble, world_model, wm_batch(torch.nonzero(held_anchor).squeeze(-1)), target_key))
     metrics["ensemble_windows"] = len(ensemble_index)
     logger({f"held_out/{k}": v for k, v in metrics.items()}, wm_steps)
-    from torchrl_dalir import __version__
-
-    save_checkpoint(
+    save_world_model(
         final,
-        {
-            "kind": "world_model",
-            "task": cfg.task,
-            "config": config_dict(cfg),
-            "policy_checkpoint": str(cfg.policy_checkpoint),
-            "policy_digest": weights_digest(policy),  # which policy's weights it was trained on (see check_trained_on)
-            "encoder_mode": cfg.encoder,
-            "policy_config": asdict(policy.config),
-            "action_dim": policy.action_dim,
-            "state_dim": policy.state_dim,
-            "world_model_args": dict(latent_dim=encoder.latent_dim, action_dim=policy.action_dim, action_steps=k,
-                                     hidden=cfg.wm_hidden, layers=cfg.wm_layers, heads=cfg.wm_heads),
-            "scorer_hidden": cfg.scorer_hidden,
-            "encoder_state": encoder.state_dict(),
-            "scorer_state": scorer.state_dict(),
-            "world_model_state": world_model.state_dict(),
-            "ensemble_args": dict(latent_dim=encoder.latent_dim, hidden=cfg.ensemble_hidden, members=cfg.ensemble_members),
-            "ensemble_state": ensemble.state_dict(),
-            "selection": SelectionConfig().to_dict(),  # the paper's arg-max until calibrated
-            "held_out_trajectories": torch.nonzero(held).squeeze(-1).tolist(),
-            "metrics": metrics,
-            "library_version": __version__,
-        },
+        policy=policy,
+        policy_checkpoint=cfg.policy_checkpoint,
+        encoder=encoder,
+        scorer=scorer,
+        world_model=world_model,
+        ensemble=ensemble,
+        world_model_args=dict(
+            latent_dim=encoder.latent_dim,
+            action_dim=policy.action_dim,
+            action_steps=k,
+            hidden=cfg.wm_hidden,
+            layers=cfg.wm_layers,
+            heads=cfg.wm_heads,
+        ),
+        scorer_hidden=cfg.scorer_hidden,
+        ensemble_args=dict(latent_dim=encoder.latent_dim, hidden=cfg.ensemble_hidden, members=cfg.ensemble_members),
+        held_out_trajectories=torch.nonzero(held).squeeze(-1).tolist(),
+        metrics=metrics,
+        encoder_mode=cfg.encoder,
+        config=config_dict(cfg),
     )
     return final
 
@@ -384,60 +363,3 @@ def held_out_imagined_metrics(scorer, ensemble, world_model, batch, target_key=k
         "imagined_brier_ensemble": mean["brier"], "imagined_calibration_error_ensemble": mean["calibration_error"],
         "ensemble_std": members.std(0, correction=0).mean().item(),
     }
-
-
-def check_trained_on(state: dict, policy: ChunkPolicy3D, path: str | Path) -> None:
-    """Refuses the world model of a loaded checkpoint ``state`` (read from ``path``) for a policy it
-    was not trained on top of: another task, or other weights than those whose digest it recorded
-    (latents of other encoders and chunks of another sampler would be scored). A checkpoint written
-    before digests were recorded is accepted with a warning."""
-    if state["task"] != policy.task:
-        raise ValueError(f"the world model at {path} is for task {state['task']!r}; the policy is for {policy.task!r}")
-    recorded, source = state.get("policy_digest"), f"at {policy.checkpoint}" if policy.checkpoint else "given"
-    if recorded is None:
-        warnings.warn(f"{path} does not record which policy it was trained on (an older checkpoint): it is not checked against "
-                      f"the policy {source}. Train the world model again to record it", stacklevel=2)
-        return
-    actual = weights_digest(policy)
-    if actual != recorded:
-        raise ValueError(
-            f"the world model at {path} was trained on top of the policy at {state['policy_checkpoint']}, not on the policy "
-            f"{source}, whose weights differ (digest {actual[:12]} instead of {recorded[:12]}): pass the policy "
-            "it was trained on, or train a world model on this one (examples/train_world_model.py policy_checkpoint=...)"
-        )
-
-
-def load_world_model(path: str | Path, device="cpu", policy: ChunkPolicy3D | None = None) -> SimpleNamespace:
-    """Loads ``task``, ``encoder``, ``world_model``, ``scorer``, ``ensemble`` (``None`` in older
-    checkpoints), ``selection`` (the calibrated :class:`SelectionConfig`, or the paper's arg-max),
-    ``calibration``, ``metrics`` and ``held_out_trajectories`` of a checkpoint. With ``policy``,
-    refuses a world model not trained on top of it (:func:`check_trained_on`)."""
-    state = load_checkpoint(path, "world_model", WORLD_MODEL_ENTRIES)
-    if policy is not None:
-        check_trained_on(state, policy, path)
-    shell = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])
-    encoder = LatentEncoder.from_policy(shell)
-    load_weights(encoder, state, "encoder_state", path)
-    world_model = LatentWorldModel(**state["world_model_args"])
-    load_weights(world_model, state, "world_model_state", path)
-    scorer = TaskCompletionScorer(encoder.latent_dim, state["scorer_hidden"])
-    load_weights(scorer, state, "scorer_state", path)
-    ensemble = None  # absent from checkpoints written before version 0.2.0
-    if "ensemble_state" in state:
-        check_entries(state, path, ("ensemble_args",), "world_model checkpoint")
-        ensemble = ScorerEnsemble(**state["ensemble_args"])
-        load_weights(ensemble, state, "ensemble_state", path)
-        ensemble = ensemble.to(device).eval()
-    return SimpleNamespace(
-        task=state["task"],
-        encoder=encoder.to(device).eval(),
-        world_model=world_model.to(device).eval(),
-        scorer=scorer.to(device).eval(),
-        ensemble=ensemble,
-        selection=SelectionConfig.stored_in(state),
-        calibration=state.get("calibration"),
-        metrics=state["metrics"],
-        policy_checkpoint=state["policy_checkpoint"],
-        policy_digest=state.get("policy_digest"),
-        held_out_trajectories=state["held_out_trajectories"],
-    )
