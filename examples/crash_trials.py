@@ -35,9 +35,9 @@ from pathlib import Path
 
 import torch
 
+from torchrl_dalir.checkpoints import safe_torch_load
 from torchrl_dalir.config import check_at_least, config_dict, parse_config
 from torchrl_dalir.data import TrajectoryDataset
-from torchrl_dalir.checkpoints import safe_torch_load
 from torchrl_dalir.utils import atomic_write
 
 JOB = Path(__file__).resolve().parent / "train_dp3_wm.py"

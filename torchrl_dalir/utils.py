@@ -13,7 +13,6 @@ from typing import BinaryIO
 
 import torch
 
-
 _UMASK = os.umask(0)  # read once, at import (setting it is the only way to read it)
 os.umask(_UMASK)
 
