@@ -156,10 +156,12 @@ def import_dp3_zarr(
         progress: show a progress bar.
 
     Example:
+        >>> import tempfile
         >>> import numpy as np
+        >>> folder = Path(tempfile.mkdtemp())
         >>> episode = {"point_cloud": np.random.rand(5, 100, 6), "state": np.random.rand(5, 7), "action": np.random.rand(5, 7)}
-        >>> store = write_dp3_zarr("/tmp/doc_example.zarr", [episode, episode])
-        >>> dataset = import_dp3_zarr(store, "/tmp/doc_example_dataset", num_points=64)
+        >>> store = write_dp3_zarr(folder / "example.zarr", [episode, episode])
+        >>> dataset = import_dp3_zarr(store, folder / "dataset", num_points=64)
         >>> dataset.num_trajectories, len(dataset.rows), dataset.rows["point_cloud"].shape[1:]
         (2, 10, torch.Size([64, 3]))
     """
@@ -219,9 +221,10 @@ def write_dp3_zarr(store_path: str | Path, episodes: list[dict[str, np.ndarray]]
             ``action`` ``[L, A]`` (numpy arrays, the same ``N, C, D, A`` for every episode).
 
     Example:
+        >>> import tempfile
         >>> import numpy as np
         >>> episode = {"point_cloud": np.zeros((4, 10, 6)), "state": np.zeros((4, 2)), "action": np.zeros((4, 2))}
-        >>> write_dp3_zarr("/tmp/doc_layout.zarr", [episode]).name
+        >>> write_dp3_zarr(Path(tempfile.mkdtemp()) / "doc_layout.zarr", [episode]).name
         'doc_layout.zarr'
     """
     zarr = _zarr()

@@ -87,8 +87,9 @@ def plot_metric_by_task(table: list[dict], path: str | Path, ylabel: str, title:
     error bars, one dot per seed); ``table`` rows as for :func:`plot_success_by_task`, with per-seed values.
 
     Example:
+        >>> import tempfile
         >>> table = [{"task": "drill", "with_action": [0.02], "without_action": [0.05]}]
-        >>> plot_metric_by_task(table, "/tmp/doc_mse.png", "held-out latent MSE",
+        >>> plot_metric_by_task(table, Path(tempfile.mkdtemp()) / "doc_mse.png", "held-out latent MSE",
         ...                     methods=(("without_action", "WM w/o action"), ("with_action", "WM w/ action"))).name
         'doc_mse.png'
     """

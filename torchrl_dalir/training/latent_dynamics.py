@@ -182,15 +182,17 @@ def compare_action_input(dataset: TrajectoryDataset, cfg: LatentDynamicsConfig, 
     a run that finds them resumes from them.
 
     Example:
+        >>> import tempfile
         >>> import numpy as np
         >>> from torchrl_dalir.data import import_dp3_zarr, write_dp3_zarr
+        >>> folder = Path(tempfile.mkdtemp())
         >>> rng = np.random.default_rng(0)
         >>> episodes = [{"point_cloud": rng.random((30, 64, 6)), "state": rng.random((30, 2)), "action": rng.random((30, 2))}
         ...             for _ in range(5)]
-        >>> dataset = import_dp3_zarr(write_dp3_zarr("/tmp/doc.zarr", episodes), "/tmp/doc_dataset", num_points=32)
+        >>> dataset = import_dp3_zarr(write_dp3_zarr(folder / "doc.zarr", episodes), folder / "dataset", num_points=32)
         >>> cfg = LatentDynamicsConfig(encoder="random", point_hidden=[16], wm_steps=20, wm_hidden=16, wm_layers=1, wm_heads=2,
         ...                            progress=False)
-        >>> result = compare_action_input(dataset, cfg, "/tmp/doc_run")
+        >>> result = compare_action_input(dataset, cfg, folder / "run")
         >>> result["held_out_trajectories"], result["with_action"] != result["without_action"]
         ([4], True)
     """
