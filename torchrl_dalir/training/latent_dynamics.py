@@ -42,7 +42,13 @@ from torchrl_dalir.modules import (
 from torchrl_dalir.objectives import LatentDynamicsLoss, TaskCompletionLoss
 from torchrl_dalir.training.loop import OptimConfig, fit
 from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
-from torchrl_dalir.training.world_model import encode_rows, imagine_windows, split_trajectories
+from torchrl_dalir.training.world_model import (
+    dynamics_optim,
+    encode_rows,
+    imagine_windows,
+    scorer_optim,
+    split_trajectories,
+)
 
 ENCODERS = ("progress", "random")
 VARIANTS = {"with_action": True, "without_action": False}  # result name -> the world model's action_input
@@ -70,18 +76,14 @@ class LatentDynamicsConfig:
     scorer_hidden: int = 256
     encoder_batch_size: int = 128
     encoder_steps: int = 3000
-    encoder_optim: OptimConfig = field(
-        default_factory=lambda: OptimConfig(lr=1e-4, betas=(0.9, 0.999), weight_decay=1e-3, warmup_steps=0)
-    )
+    encoder_optim: OptimConfig = field(default_factory=scorer_optim)
     action_steps: int = 8  # k: the chunk the world model reads, and how far ahead it predicts
     wm_hidden: int = 256
     wm_layers: int = 3
     wm_heads: int = 4
     wm_batch_size: int = 512
     wm_steps: int = 5000
-    wm_optim: OptimConfig = field(
-        default_factory=lambda: OptimConfig(lr=3e-4, betas=(0.9, 0.999), weight_decay=1e-4, warmup_steps=0)
-    )
+    wm_optim: OptimConfig = field(default_factory=dynamics_optim)
     held_out_fraction: float = 0.2  # of the trajectories
     seed: int = 0  # the split, the initial weights and the batches
     device: str = "cpu"

@@ -53,6 +53,16 @@ MISLEADING_DENSE_REWARD = {"door": "its dense reward grows with the palm-to-hand
 ENCODER_MODES = ("finetune", "frozen")
 
 
+def scorer_optim() -> OptimConfig:
+    """The optimiser of the latent encoder and scorer (the paper's): AdamW 1e-4, weight decay 1e-3."""
+    return OptimConfig(lr=1e-4, betas=(0.9, 0.999), weight_decay=1e-3, warmup_steps=0)
+
+
+def dynamics_optim() -> OptimConfig:
+    """The optimiser of the latent world model: AdamW 3e-4, weight decay 1e-4."""
+    return OptimConfig(lr=3e-4, betas=(0.9, 0.999), weight_decay=1e-4, warmup_steps=0)
+
+
 @dataclass
 class WorldModelTrainingConfig:
     """``examples/train_world_model.py``'s configuration (the paper's hyper-parameters by default).
@@ -83,14 +93,14 @@ class WorldModelTrainingConfig:
     scorer_epochs: int = 30
     scorer_steps: int = 0  # 0: derive from scorer_epochs
     frozen_scorer_steps: int = 0  # with encoder=frozen (0: derive from scorer_epochs)
-    scorer_optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, betas=(0.9, 0.999), weight_decay=1e-3, warmup_steps=0))
+    scorer_optim: OptimConfig = field(default_factory=scorer_optim)
     wm_hidden: int = 256
     wm_layers: int = 3
     wm_heads: int = 4
     wm_batch_size: int = 512
     wm_epochs: int = 100
     wm_steps: int = 0  # 0: derive from wm_epochs
-    wm_optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-4, betas=(0.9, 0.999), weight_decay=1e-4, warmup_steps=0))
+    wm_optim: OptimConfig = field(default_factory=dynamics_optim)
     ensemble_sources: list[str] = field(default_factory=list)  # train the ensemble on these sources only (e.g. [base_policy,exploration]); empty: all
     ensemble_members: int = 5
     ensemble_hidden: int = 256
