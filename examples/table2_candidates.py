@@ -71,15 +71,28 @@ def candidate_source(name: str, cfg: Config, suite: str) -> dict:
     return {"candidates": CleanObservation(), "search": dataclasses.replace(cfg.search, method=name, fixed_dims=fixed)}
 
 
-def evaluate_run(policy_path: str, world_model_path: str, cfg: Config) -> dict:
-    """Every source of ``cfg`` and the base policy on one (policy, world model) pair, on the same episodes."""
+def evaluate_run(index: int, policy_path: str, world_model_path: str, cfg: Config) -> dict:
+    """Every source of ``cfg`` and the base policy on one (policy, world model) pair, on the same episodes.
+    Each method's row is kept in ``<out>/parts/`` as soon as it is measured, and a re-run with the same
+    inputs reuses it: an interrupted table resumes at the method it was running."""
     task = load_policy(policy_path, cfg.device).task
     common = dict(episodes=cfg.episodes, seed=cfg.seed, device=cfg.device, num_candidates=cfg.num_candidates,
                   actor_seed=cfg.actor_seed, selection=cfg.selection, common_noise=cfg.common_noise)
-    methods = {"base": evaluate_checkpoints(policy_path, world_model_path, methods=["base"], **common)[BASE]}
+
+    def measured(name: str, measure) -> dict:
+        settings = {k: v for k, v in config_dict(cfg).items() if k not in ("policies", "world_models", "sources", "out")}
+        inputs = json.loads(json.dumps({"policy": policy_path, "world_model": world_model_path, "method": name, **settings}))
+        part = Path(cfg.out) / "parts" / f"{index}_{task}" / f"{name}.json"
+        if part.exists() and (stored := json.loads(part.read_text()))["inputs"] == inputs:
+            return stored["row"]
+        row = measure()
+        atomic_write(part, json.dumps({"inputs": inputs, "row": row}))
+        return row
+
+    methods = {"base": measured("base", lambda: evaluate_checkpoints(policy_path, world_model_path, methods=["base"], **common)[BASE])}
     for name in cfg.sources:
         source = candidate_source(name, cfg, get_task(task).suite)
-        row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], **common, **source)[DALIR]
+        row = measured(name, lambda: evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], **common, **source)[DALIR])
         methods[name] = {**row, **({"search": source["search"].name} if "search" in source else {})}
     return {"task": task, "policy": policy_path, "world_model": world_model_path, "methods": methods}
 
@@ -112,7 +125,7 @@ def main(argv: list[str]) -> None:
         raise ValueError(f"unknown sources {sorted(unknown)}; choose among {sorted(SOURCES)}")
     if len(cfg.policies) != len(cfg.world_models):
         raise ValueError(f"{len(cfg.policies)} policies but {len(cfg.world_models)} world models: give one world model per policy")
-    runs = [evaluate_run(p, w, cfg) for p, w in zip(cfg.policies, cfg.world_models)]
+    runs = [evaluate_run(i, p, w, cfg) for i, (p, w) in enumerate(zip(cfg.policies, cfg.world_models))]
     keys = ["base", *cfg.sources]
     labels = {"base": "base policy", **SOURCES}
     table = success_table(runs, keys)

@@ -52,6 +52,21 @@ def synthetic_trajectory(num_actions: int, success: bool, num_points: int = 8, a
     )
 
 
+@pytest.fixture(autouse=True)
+def _thread_count_restored():
+    """Every test leaves torch's thread count as it found it: results differ in the last bits between
+    thread counts, and the session-scoped models below are compared bit for bit with ones trained later."""
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def one_thread():
+    """The test runs with one torch thread (the thread count is restored afterwards)."""
+    torch.set_num_threads(1)
+
+
 @contextlib.contextmanager
 def killed_at_the_complete_mark():
     """Inside, writing a dataset's ``complete`` mark raises ``KeyboardInterrupt``: a kill between

@@ -43,10 +43,9 @@ def test_wrong_state_size_is_a_clear_error(expert, size):
         expert(torch.zeros(2, size))
 
 
-def test_recorded_rollout_is_reproduced(expert):
+def test_recorded_rollout_is_reproduced(expert, one_thread):
     from torchrl_dalir.envs import make_env
 
-    torch.set_num_threads(1)
     env = make_env("pen", seed=ROLLOUT_SEED, render=False)
     module = TensorDictModule(expert, in_keys=expert.in_keys, out_keys=[keys.ACTION])
     with torch.no_grad():

@@ -147,7 +147,7 @@ def test_table2_script_evaluates_every_source_on_the_same_episodes(tmp_path, mon
     monkeypatch.setattr(compare, "evaluate_checkpoints", fake_evaluate)
     monkeypatch.setattr(checkpoints, "load_policy", lambda path, device: SimpleNamespace(task=Path(path).stem))
     script = Path(__file__).resolve().parents[1] / "examples" / "table2_candidates.py"
-    args = ["policies=[stick-pull.pt,reach.pt]", "world_models=[a.pt,b.pt]", "episodes=3", "search.iterations=2", f"out={tmp_path}"]
+    args = ["policies=[stick-pull.pt,reach.pt]", "world_models=[a.pt,b.pt]", "search.iterations=2", "episodes=3", f"out={tmp_path}"]
     monkeypatch.setattr(sys, "argv", ["x", *args])
     runpy.run_path(str(script), run_name="__main__")
     assert len(calls) == 2 * 7 and {c["episodes"] for c in calls} == {3} and {c["seed"] for c in calls} == {0}
@@ -162,6 +162,16 @@ def test_table2_script_evaluates_every_source_on_the_same_episodes(tmp_path, mon
     text = (tmp_path / "table2.md").read_text()
     assert "| point dropout | policy input |" in text and "| CEM | action chunk |" in text
     assert (tmp_path / "table2.png").stat().st_size > 0
+    before = json.loads((tmp_path / "table2.json").read_text())
+    (tmp_path / "parts" / "1_reach" / "cem.json").unlink()  # as if interrupted while measuring reach's CEM
+    calls.clear()
+    runpy.run_path(str(script), run_name="__main__")
+    assert [(Path(c["policy"]).name, c["search"] and c["search"].method) for c in calls] == [("reach.pt", "cem")]
+    assert json.loads((tmp_path / "table2.json").read_text())["runs"][0] == before["runs"][0]
+    calls.clear()  # a changed setting measures again
+    monkeypatch.setattr(sys, "argv", ["x", *args[:-1], "episodes=4", f"out={tmp_path}"])
+    runpy.run_path(str(script), run_name="__main__")
+    assert len(calls) == 2 * 7
     monkeypatch.setattr(sys, "argv", ["x", *args, "sources=[dropout,annealing]"])
     with pytest.raises(ValueError, match="unknown sources"):
         runpy.run_path(str(script), run_name="__main__")

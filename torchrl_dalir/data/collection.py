@@ -193,6 +193,7 @@ def _collect_chunk(spec, source, source_index, count, chunk_seed, cfg, bar):
     env_fns = [partial(_worker_env, spec, chunk_seed + w, cfg["num_points"], source.history) for w in range(workers)]
     policy_fns = [partial(_source_policy, spec, source, cfg["noise_correlation"], chunk_seed + w) for w in range(workers)]
     frames = FRAMES_PER_WORKER * workers
+    threads = torch.get_num_threads()  # TorchRL's multi-process collector changes it; the caller's choice stands
     if workers > 1:  # env and policy step in each worker process; this process only gathers
         collector = MultiSyncCollector(env_fns, policy_factory=policy_fns, frames_per_batch=frames, total_frames=-1, cat_results="stack")
     else:
@@ -224,5 +225,6 @@ def _collect_chunk(spec, source, source_index, count, chunk_seed, cfg, bar):
                 break
     finally:
         collector.shutdown()
+        torch.set_num_threads(threads)
     seconds = time.perf_counter() - start
     return torch.cat(kept), {"failures_dropped": failures, "env_steps": steps, "seconds": round(seconds, 2)}
