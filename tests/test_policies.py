@@ -17,8 +17,10 @@ TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=2
 
 
 def _policy(kind, seed=0):
+    """``kind`` is ``dp``, ``fm`` or ``fm-sample`` (flow matching whose network predicts the clean chunk)."""
     torch.manual_seed(seed)
-    policy = make_policy(PolicyConfig(kind=kind, **TINY), action_dim=4, state_dim=4)
+    kind, _, prediction = kind.partition("-")
+    policy = make_policy(PolicyConfig(kind=kind, flow_prediction=prediction or "velocity", **TINY), action_dim=4, state_dim=4)
     policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 2 - 1)
     return policy
 
@@ -89,7 +91,7 @@ def test_sample_rejects_noise_of_the_wrong_shape():
             policy.sample(cond, noise=bad)
 
 
-@pytest.mark.parametrize("kind", ["dp", "fm"])
+@pytest.mark.parametrize("kind", ["dp", "fm", "fm-sample"])
 def test_sampler_inverts_its_training_objective(kind):
     """With a perfect network the loss is zero and the sampler returns the demo chunk: loss and
     sampler agree on the direction of time (FM) and on what the network predicts (DP)."""
@@ -99,7 +101,10 @@ def test_sampler_inverts_its_training_objective(kind):
     batch[keys.ACTION_CHUNK] = policy.action_normalizer.unnormalize(clean)
     target = policy.action_normalizer(batch[keys.ACTION_CHUNK])
     if kind == "fm":
-        policy.velocity = lambda x, t, cond: (target - x) / (1 - t)[:, None, None]
+        policy.network = lambda x, t, cond: (target - x) / (1 - t)[:, None, None]
+        loss = FlowMatchingLoss(policy)(batch)["loss_flow_matching"]
+    elif kind == "fm-sample":
+        policy.network = lambda x, t, cond: target
         loss = FlowMatchingLoss(policy)(batch)["loss_flow_matching"]
     else:
         policy.unet.forward = lambda x, step, cond: target
@@ -173,7 +178,10 @@ def test_policy_rejects_bad_observations():
         policy.encode(cloud, torch.rand(4, 2, 4))
 
 
-@pytest.mark.parametrize("kind, loss_class", [("dp", DiffusionLoss), ("fm", FlowMatchingLoss), ("fm", ConsistencyFlowMatchingLoss)])
+@pytest.mark.parametrize(
+    "kind, loss_class",
+    [("dp", DiffusionLoss), ("fm", FlowMatchingLoss), ("fm-sample", FlowMatchingLoss), ("fm", ConsistencyFlowMatchingLoss)],
+)
 def test_training_lowers_the_loss(kind, loss_class):
     policy = _policy(kind)
     loss_module = loss_class(policy)

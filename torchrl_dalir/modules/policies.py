@@ -291,9 +291,13 @@ class DiffusionPolicy3D(ChunkPolicy3D):
         return x
 
 
+FINAL_TIME_GAP = 1e-3  # the smallest 1 - t a derived velocity divides by (Euler steps stop at t <= 1 - 1/steps)
+
+
 class FlowMatchingPolicy3D(ChunkPolicy3D):
     """3D flow matching: a velocity field along the straight path from noise (t=0) to the chunk
-    (t=1), integrated with ``euler_steps`` Euler steps (network evaluations).
+    (t=1), integrated with ``euler_steps`` Euler steps (network evaluations). The network outputs
+    the velocity or, with ``flow_prediction="sample"``, the clean chunk (:class:`PolicyConfig`).
 
     Example:
         >>> from torchrl_dalir.modules import PolicyConfig
@@ -302,9 +306,18 @@ class FlowMatchingPolicy3D(ChunkPolicy3D):
         torch.Size([3, 16, 4])
     """
 
-    def velocity(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        """The velocity at path time ``t`` ``[B]`` in [0, 1] (embedded like a diffusion step)."""
+    def network(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """The U-Net's output at path time ``t`` ``[B]`` in [0, 1] (embedded like a diffusion step): the
+        velocity, or the clean chunk under ``flow_prediction="sample"``."""
         return self.unet(x, t * self.config.train_timesteps, cond)
+
+    def velocity(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """The velocity at path time ``t``; a predicted clean chunk ``a`` gives ``(a - x) / (1 - t)``,
+        the velocity that reaches it at ``t = 1``."""
+        out = self.network(x, t, cond)
+        if self.config.flow_prediction == "sample":
+            return (out - x) / (1 - t)[:, None, None].clamp_min(FINAL_TIME_GAP)
+        return out
 
     def generate(self, cond: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         steps = self.config.euler_steps

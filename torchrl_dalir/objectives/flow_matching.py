@@ -15,7 +15,8 @@ def straight_path(t: torch.Tensor, chunk: torch.Tensor, noise: torch.Tensor) -> 
 
 
 class FlowMatchingLoss(ChunkGenerationLoss):
-    """Regresses the velocity ``a - z`` at ``x_t = t * a + (1 - t) * z``, ``t ~ U[0, 1]`` (MSE).
+    """Regresses the velocity ``a - z`` at ``x_t = t * a + (1 - t) * z``, ``t ~ U[0, 1]`` (MSE), or
+    the chunk ``a`` itself when the policy predicts samples (``flow_prediction="sample"``).
 
     Reads the same training windows, under the same keys, as
     :class:`~torchrl_dalir.objectives.DiffusionLoss`.
@@ -39,4 +40,5 @@ class FlowMatchingLoss(ChunkGenerationLoss):
 
     def chunk_loss(self, cond: torch.Tensor, chunk: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         t = torch.rand(chunk.shape[0], device=chunk.device)
-        return torch.nn.functional.mse_loss(self.policy.velocity(straight_path(t, chunk, noise), t, cond), chunk - noise)
+        out = self.policy.network(straight_path(t, chunk, noise), t, cond)
+        return torch.nn.functional.mse_loss(out, chunk if self.policy.config.flow_prediction == "sample" else chunk - noise)
