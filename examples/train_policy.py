@@ -2,8 +2,10 @@
 
     python examples/train_policy.py task=disassemble policy=fm preset=cpu seed=0
     python examples/train_policy.py task=disassemble policy=dp preset=paper device=cuda
+    torchrun --nproc_per_node=4 examples/train_policy.py task=disassemble policy=dp preset=paper device=cuda
 
-Reads ``<data>/<task>/demos`` (make it with ``examples/collect_data.py``), writes
+Under torchrun the training is data-parallel (``batch_size`` stays the global batch) and rank 0
+alone writes, evaluates and prints. Reads ``<data>/<task>/demos`` (make it with ``examples/collect_data.py``), writes
 ``<out>/<task>/<policy>_seed<seed>/checkpoint.pt`` (resumed if it exists) and logs; with
 ``eval_episodes=N`` it then evaluates the EMA policy on N evaluation episodes.
 """
@@ -20,7 +22,7 @@ from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.evaluation import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.seeds import check_eval_seed
-from torchrl_dalir.training import POLICY_PRESETS, PolicyTrainingConfig, train_policy
+from torchrl_dalir.training import POLICY_PRESETS, PolicyTrainingConfig, distributed, train_policy
 from torchrl_dalir.utils import atomic_write
 
 
@@ -39,6 +41,8 @@ def main(argv: list[str]) -> None:
     cfg = parse_config(Config, argv, POLICY_PRESETS)
     start = time.perf_counter()
     path = train_policy(cfg)
+    if not distributed.is_main():
+        return
     print(f"trained {cfg.policy} on {cfg.task} in {time.perf_counter() - start:.0f} s: {path}")
     if cfg.eval_episodes:
         policy = load_policy(path, cfg.device, task=cfg.task)

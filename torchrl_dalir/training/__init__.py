@@ -5,6 +5,7 @@ importable from here for existing code.
 """
 
 from torchrl_dalir.checkpoints import load_policy, load_world_model
+from torchrl_dalir.training import distributed
 from torchrl_dalir.training.loop import OptimConfig, fit
 from torchrl_dalir.training.policy import PRESETS as POLICY_PRESETS
 from torchrl_dalir.training.policy import PolicyTrainingConfig, train_policy
@@ -17,6 +18,7 @@ __all__ = [
     "PolicyTrainingConfig",
     "WORLD_MODEL_PRESETS",
     "WorldModelTrainingConfig",
+    "distributed",
     "fit",
     "load_policy",
     "load_world_model",

@@ -8,10 +8,15 @@ from pathlib import Path
 
 from torchrl.record.loggers import CSVLogger, WandbLogger
 
+from torchrl_dalir.training import distributed
+
 
 def make_logger(run_dir: str | Path, name: str, use_wandb: bool = True, config: dict | None = None) -> Callable[[dict, int], None]:
     """A ``log(metrics, step)`` function writing CSV under ``run_dir`` and, with ``use_wandb``,
-    a wandb run that stays offline unless ``WANDB_MODE`` says otherwise."""
+    a wandb run that stays offline unless ``WANDB_MODE`` says otherwise. Under torchrun only rank 0
+    logs: the other ranks get a function that does nothing."""
+    if not distributed.is_main():
+        return lambda metrics, step: None
     run_dir = Path(run_dir)
     loggers = [CSVLogger(name, log_dir=str(run_dir / "logs"))]
     if use_wandb:

@@ -1,7 +1,8 @@
 """A generic training loop: AdamW with cosine warm-up, EMA weights, atomic resumable checkpoints.
 
 Every model of the pipeline trains through :func:`fit`; what differs (the ``LossModule`` and how
-a batch is drawn) is passed in.
+a batch is drawn) is passed in. Under ``torchrun`` the same loop trains data-parallel
+(:mod:`torchrl_dalir.training.distributed`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import torch
 from diffusers.optimization import get_cosine_schedule_with_warmup
 from tensordict import TensorDictBase
 from torch import nn
+from torch.nn.parallel import DistributedDataParallel
 from torch.optim.swa_utils import AveragedModel
 from torchrl.objectives import LossModule
 from tqdm.auto import tqdm
@@ -27,6 +29,7 @@ from torchrl_dalir.checkpoints.files import (
     save_checkpoint,
 )
 from torchrl_dalir.config import check_at_least
+from torchrl_dalir.training import distributed
 
 
 @dataclass
@@ -67,6 +70,27 @@ def make_ema(model: nn.Module, config: OptimConfig) -> AveragedModel:
 RESUME_ENTRIES = ("model", "ema", "optimizer", "schedule", "generator", "torch_rng", "step", "num_steps")
 
 
+def data_parallel(loss_module: LossModule, params: list[nn.Parameter]) -> nn.Module:
+    """``loss_module`` wrapped in :class:`~torch.nn.parallel.DistributedDataParallel` when the job
+    runs on several processes (itself otherwise).
+
+    The loss module, not the model, is wrapped: the losses call the model's own methods
+    (``encode``, ``velocity``, ``imagine``), never its ``forward``, and DDP synchronises the
+    gradients of what its ``forward`` runs. Every trained parameter must then belong to the loss
+    module, or its gradient would stay per-rank and the ranks' weights would drift apart; and
+    each must get a gradient at every step (DDP's default, without the cost of searching for
+    unused ones: true of every loss of the library).
+    """
+    if distributed.world_size() == 1:
+        return loss_module
+    held = {id(p) for p in loss_module.parameters()}
+    missing = sum(id(p) not in held for p in params)
+    if missing:
+        raise ValueError(f"{missing} trained parameters of the model are not parameters of the loss module "
+                         f"{type(loss_module).__name__}: their gradients could not be averaged over the processes")
+    return DistributedDataParallel(loss_module)
+
+
 def fit(
     loss_module: LossModule,
     model: nn.Module,
@@ -82,6 +106,7 @@ def fit(
     log_every: int = 50,
     autocast_dtype: torch.dtype | None = None,
     progress: bool = True,
+    shard_dim: int = 0,
 ) -> AveragedModel:
     """Trains ``model`` by minimising the sum of ``loss_module``'s ``loss_*`` entries.
 
@@ -89,6 +114,15 @@ def fit(
     random state); writes it every ``checkpoint_every`` steps and at the end. The checkpoint
     also holds ``make_payload(ema_model)`` (config, normalizers, ...): the EMA model is the one
     to evaluate and ship.
+
+    Under ``torchrun`` (:mod:`~torchrl_dalir.training.distributed`) every rank draws the same
+    global batch and trains on its slice along ``shard_dim``, gradients averaged by
+    ``DistributedDataParallel``: N ranks take the same steps as one process on the same data
+    (exactly, up to float rounding, for a loss without random draws). The loss's own random
+    draws (noise, timesteps) use a torch generator seeded ``seed + rank``, so they differ per
+    rank and a run on N > 1 ranks is not bit-identical to one on a single process. Only rank 0
+    logs, shows progress and writes the checkpoint (which keeps every rank's random state); all
+    ranks resume from it.
 
     Args:
         loss_module: returns a tensordict of ``loss_*`` scalars for a batch.
@@ -99,16 +133,23 @@ def fit(
         checkpoint_path: where the checkpoint lives.
         make_payload: extra checkpoint content built from the EMA model.
         seed: seeds batch sampling and the model's noise.
+        log: receives the losses (averaged over the ranks) and the learning rate; called on rank 0 only.
         autocast_dtype: e.g. ``torch.bfloat16`` to run forward passes under autocast.
+        progress: shows a progress bar (on rank 0).
+        shard_dim: the batch dimension split over the ranks (its size must be a multiple of their number).
     """
     check_at_least("num_steps", num_steps, 0)
     checkpoint_path = Path(checkpoint_path)
+    device = next(model.parameters()).device
+    distributed.setup(device)
+    main, rank = distributed.is_main(), distributed.rank()
     params = [p for p in model.parameters() if p.requires_grad]
+    trained_loss = data_parallel(loss_module, params)
     optimizer = torch.optim.AdamW(params, lr=optim.lr, betas=tuple(optim.betas), weight_decay=optim.weight_decay)
     schedule = get_cosine_schedule_with_warmup(optimizer, optim.warmup_steps, num_steps)
     ema = make_ema(model, optim)
-    generator = torch.Generator().manual_seed(seed)
-    torch.manual_seed(seed)
+    generator = torch.Generator().manual_seed(seed)  # the same on every rank: the same global batches
+    torch.manual_seed(seed + rank)
     step = 0
     if checkpoint_path.exists():
         try:
@@ -123,33 +164,36 @@ def fit(
         optimizer.load_state_dict(state["optimizer"])
         schedule.load_state_dict(state["schedule"])
         generator.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
         step = state["step"]
+        _restore_torch_rng(state, seed, step)
 
     def checkpoint():
-        save_checkpoint(
-            checkpoint_path,
-            {
-                "model": model.state_dict(),
-                "ema": ema.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "schedule": schedule.state_dict(),
-                "generator": generator.get_state(),
-                "torch_rng": torch.get_rng_state(),
-                "step": step,
-                "num_steps": num_steps,
-                **make_payload(ema.module),
-            },
-        )
+        rng_states = distributed.gather(torch.get_rng_state())  # a collective: every rank takes part
+        if main:
+            save_checkpoint(
+                checkpoint_path,
+                {
+                    "model": model.state_dict(),
+                    "ema": ema.state_dict(),
+                    "optimizer": optimizer.state_dict(),
+                    "schedule": schedule.state_dict(),
+                    "generator": generator.get_state(),
+                    "torch_rng": rng_states[0],
+                    **({"rank_torch_rng": rng_states} if len(rng_states) > 1 else {}),
+                    "step": step,
+                    "num_steps": num_steps,
+                    **make_payload(ema.module),
+                },
+            )
+        distributed.barrier()  # no rank reads the file before it is whole
 
-    device = next(model.parameters()).device
-    bar = tqdm(total=num_steps, initial=step, desc="train", disable=not progress)
+    bar = tqdm(total=num_steps, initial=step, desc="train", disable=not (progress and main))
     start, first_step = time.perf_counter(), step
     model.train()
     while step < num_steps:
-        batch = next_batch(generator).to(device)
+        batch = distributed.shard(next_batch(generator), shard_dim).to(device)
         with torch.autocast(device.type, dtype=autocast_dtype, enabled=autocast_dtype is not None):
-            losses = loss_module(batch)
+            losses = trained_loss(batch)
         loss = sum(v for k, v in losses.items() if k.startswith("loss"))
         if not torch.isfinite(loss):
             raise FloatingPointError(f"the training loss became {loss.item()} at step {step}")
@@ -162,12 +206,26 @@ def fit(
         ema.update_parameters(model)
         step += 1
         bar.update(1)
-        if log is not None and (step % log_every == 0 or step == num_steps):
-            log({**{k: v.item() for k, v in losses.items()}, "lr": schedule.get_last_lr()[0],
-                 "steps_per_s": (step - first_step) / (time.perf_counter() - start)}, step)
+        if step % log_every == 0 or step == num_steps:
+            losses = distributed.mean_over_ranks(dict(losses.items()))  # a collective: every rank takes part
+            if log is not None and main:
+                log({**{k: v.item() for k, v in losses.items()}, "lr": schedule.get_last_lr()[0],
+                     "steps_per_s": (step - first_step) / (time.perf_counter() - start)}, step)
         if step % checkpoint_every == 0 or step == num_steps:
             checkpoint()
     bar.close()
     if step == 0 or not checkpoint_path.exists():
         checkpoint()
     return ema
+
+
+def _restore_torch_rng(state: dict, seed: int, step: int) -> None:
+    """Restores this rank's torch random state from a checkpoint. A checkpoint written by a
+    different number of ranks has no state for some ranks: each rank then reseeds from
+    ``(seed, rank, step)`` (the data order, drawn by the shared generator, is unaffected)."""
+    ranks, rank = distributed.world_size(), distributed.rank()
+    states = state.get("rank_torch_rng", [state["torch_rng"]])
+    if len(states) == ranks:
+        torch.set_rng_state(states[rank])
+    else:
+        torch.manual_seed(hash((seed, rank, step)) % 2**63)

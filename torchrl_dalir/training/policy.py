@@ -21,6 +21,7 @@ from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.modules import ChunkPolicy3D, PolicyConfig, make_policy
 from torchrl_dalir.modules.config import POLICY_KINDS
 from torchrl_dalir.objectives import ConsistencyFlowMatchingLoss, DiffusionLoss, FlowMatchingLoss
+from torchrl_dalir.training import distributed
 from torchrl_dalir.training.logging import make_logger
 from torchrl_dalir.training.loop import OptimConfig, fit
 from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
@@ -41,12 +42,12 @@ class PolicyTrainingConfig:
     policy: str = "fm"  # fm | dp
     preset: str = "cpu"
     seed: int = 0
-    device: str = "cpu"
+    device: str = "cpu"  # under torchrun, cuda means cuda:<LOCAL_RANK> for each rank
     data: str = "outputs/data"  # demos are read from <data>/<task>/demos
     out: str = "outputs/policies"  # the run writes <out>/<task>/<policy>_seed<seed>/
     model: PolicyConfig = field(default_factory=PolicyConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    batch_size: int = 128
+    batch_size: int = 128  # the global batch: under torchrun each of N ranks trains on batch_size / N of it
     epochs: int = 3000  # used when num_steps is 0: epochs over the demo windows
     num_steps: int = 0
     precision: str = "auto"  # auto (bf16 autocast where the hardware runs it natively) | bf16 | fp32
@@ -61,6 +62,7 @@ class PolicyTrainingConfig:
         check_choice("precision", self.precision, PRECISIONS)
         for name, minimum in (("batch_size", 1), ("epochs", 1), ("num_steps", 0), ("checkpoint_every", 1), ("log_every", 1)):
             check_at_least(name, getattr(self, name), minimum)
+        distributed.check_global_batch("batch_size", self.batch_size)
 
     def run_dir(self) -> Path:
         return Path(self.out) / self.task / f"{self.policy}_seed{self.seed}"
@@ -103,8 +105,10 @@ def _loss_module(policy: ChunkPolicy3D):
 
 
 def train_policy(cfg: PolicyTrainingConfig) -> Path:
-    """Trains (or resumes) a base policy on ``cfg.task``'s demos; returns the checkpoint path."""
+    """Trains (or resumes) a base policy on ``cfg.task``'s demos; returns the checkpoint path.
+    Under torchrun, data-parallel over the ranks (only rank 0 writes)."""
     cfg.model.kind = cfg.policy
+    device = distributed.setup(cfg.device)
     torch.manual_seed(cfg.seed)
     demos = TrajectoryDataset.load(cfg.demos_dir(), task=cfg.task)
     windows = TrajectoryWindows(demos, cfg.model.obs_steps, cfg.model.horizon, cfg.model.action_steps)
@@ -119,7 +123,7 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
     )
     policy.set_action_bounds(*action_bounds(cfg.task))  # stored in its checkpoint: loading it needs no simulator
     policy.fit_normalizers(rows[keys.POINT_CLOUD], rows[keys.AGENT_POS], rows[keys.ACTION][acting])
-    policy.to(cfg.device)
+    policy.to(device)
     num_steps = cfg.num_steps or cfg.epochs * math.ceil(len(windows) / cfg.batch_size)
     run_dir = cfg.run_dir()
     logger = make_logger(run_dir, f"{cfg.task}_{cfg.policy}_seed{cfg.seed}", use_wandb=cfg.wandb, config=config_dict(cfg))
@@ -136,7 +140,7 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
         checkpoint_every=cfg.checkpoint_every,
         log=logger,
         log_every=cfg.log_every,
-        autocast_dtype=autocast_dtype(cfg.precision, cfg.device),
+        autocast_dtype=autocast_dtype(cfg.precision, device),
         progress=cfg.progress,
     )
     return run_dir / "checkpoint.pt"

@@ -19,6 +19,10 @@ Three stages, each resumable:
 
 Trajectories (not rows) are split into training and held-out sets, so held-out metrics never
 see a step of a training trajectory.
+
+Under torchrun the three trainings run data-parallel; the steps between them (encoding every
+row, imagining every window) are deterministic and run on every rank (they take the same time
+as in one process), and only rank 0 computes the held-out metrics and writes ``world_model.pt``.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, ScorerEnsembl
 from torchrl_dalir.objectives import ImaginedCompletionLoss, LatentDynamicsLoss, TaskCompletionLoss
 from torchrl_dalir.objectives.imagined_completion import IMAGINED_LATENT
 from torchrl_dalir.objectives.latent_dynamics import LATENT
+from torchrl_dalir.training import distributed
 from torchrl_dalir.training.logging import make_logger
 from torchrl_dalir.training.loop import OptimConfig, fit
 from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
@@ -77,7 +82,7 @@ class WorldModelTrainingConfig:
     task: str = "disassemble"
     preset: str = "cpu"
     seed: int = 0
-    device: str = "cpu"
+    device: str = "cpu"  # under torchrun, cuda means cuda:<LOCAL_RANK> for each rank
     data: str = "outputs/data"  # the mixed data is read from <data>/<task>/<mixed_name>
     mixed_name: str = "mixed"
     extra_data: list[str] = field(default_factory=list)  # more datasets of <data>/<task>/ added to the mixed data
@@ -89,7 +94,7 @@ class WorldModelTrainingConfig:
     scorer_target: str = "completion"  # completion (sparse labels) | dense_reward (the oracle ablation)
     dense_reward_gamma: float = 0.99
     scorer_hidden: int = 256
-    scorer_batch_size: int = 128
+    scorer_batch_size: int = 128  # batch sizes are global: under torchrun each of N ranks trains on 1/N of each batch
     scorer_epochs: int = 30
     scorer_steps: int = 0  # 0: derive from scorer_epochs
     frozen_scorer_steps: int = 0  # with encoder=frozen (0: derive from scorer_epochs)
@@ -126,6 +131,8 @@ class WorldModelTrainingConfig:
             check_at_least(name, getattr(self, name), 1)
         for name in ("scorer_steps", "frozen_scorer_steps", "wm_steps", "ensemble_steps", "mixed_trajectories"):
             check_at_least(name, getattr(self, name), 0)
+        for name in ("scorer_batch_size", "wm_batch_size", "ensemble_batch_size"):
+            distributed.check_global_batch(name, getattr(self, name))
 
     def variant(self) -> str:
         """What sets this run apart from the paper's: ``""``, or e.g. ``"_frozen+explore"`` or
@@ -215,11 +222,13 @@ def _scorer_metrics(probabilities: torch.Tensor, targets: torch.Tensor, bins: in
 
 
 def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
-    """Trains (or resumes) the latent encoder, scorer and world model; returns the checkpoint."""
+    """Trains (or resumes) the latent encoder, scorer and world model; returns the checkpoint.
+    Under torchrun, data-parallel over the ranks (only rank 0 writes)."""
     run_dir = cfg.run_dir()
     final = run_dir / "world_model.pt"
     if final.exists():
         return final
+    device = distributed.setup(cfg.device)
     torch.manual_seed(cfg.seed)
     policy = load_policy(cfg.policy_checkpoint, task=cfg.task)
     mixed = training_data(cfg)
@@ -236,21 +245,21 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     if ensemble_sources is not None and not ensemble_sources[rows[keys.SOURCE][train_rows]].any():
         raise ValueError(f"no training trajectory of the sources {cfg.ensemble_sources} (all held out?): add data of them or name others")
     logger = make_logger(run_dir, f"{cfg.task}_world_model_seed{cfg.seed}", use_wandb=cfg.wandb, config=config_dict(cfg))
-    autocast = autocast_dtype(cfg.precision, cfg.device)
+    autocast = autocast_dtype(cfg.precision, device)
 
     def train_stage(loss_module, model, data, train_index, batch_shape, steps, optim, name, dtype=None):
-        """Trains one stage on random batches ``[*batch_shape]`` of ``data[train_index]``;
-        resumes from ``<name>.pt``."""
+        """Trains one stage on random batches ``[*batch_shape]`` of ``data[train_index]`` (split over
+        torchrun's ranks along the last dimension); resumes from ``<name>.pt``."""
         return fit(
             loss_module, model, lambda g: data[train_index[torch.randint(len(train_index), batch_shape, generator=g)]],
             steps, optim, run_dir / f"{name}.pt", lambda ema: {}, seed=cfg.seed, checkpoint_every=cfg.checkpoint_every,
             log=lambda m, s: logger({f"{name}/{k}": v for k, v in m.items()}, s), log_every=cfg.log_every,
-            autocast_dtype=dtype, progress=cfg.progress,
+            autocast_dtype=dtype, progress=cfg.progress, shard_dim=len(batch_shape) - 1,
         ).module
 
     # Stage 1: latent encoder + task-completion scorer (or the scorer alone on frozen latents).
-    encoder = LatentEncoder.from_policy(policy).to(cfg.device)
-    scorer = TaskCompletionScorer(encoder.latent_dim, cfg.scorer_hidden).to(cfg.device)
+    encoder = LatentEncoder.from_policy(policy).to(device)
+    scorer = TaskCompletionScorer(encoder.latent_dim, cfg.scorer_hidden).to(device)
     epoch_steps = cfg.scorer_epochs * -(-len(train_rows) // cfg.scorer_batch_size)
     if cfg.encoder == "finetune":
         pair = nn.ModuleDict({"encoder": encoder, "scorer": scorer})
@@ -258,7 +267,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
                                cfg.scorer_steps or epoch_steps, cfg.scorer_optim, "scorer", autocast)
         encoder, scorer = ema_pair["encoder"].eval(), ema_pair["scorer"].eval()
     encoder.eval().requires_grad_(False)
-    latents = encode_rows(encoder, rows, device=cfg.device)
+    latents = encode_rows(encoder, rows, device=device)
     if cfg.encoder == "frozen":
         table = TensorDict({LATENT: latents, target_key: rows[target_key]}, [len(rows)])
         scorer = train_stage(TaskCompletionLoss(None, scorer, target_key), scorer, table, train_rows, (cfg.scorer_batch_size,),
@@ -283,7 +292,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
 
     world_model = LatentWorldModel(encoder.latent_dim, policy.action_dim, k, cfg.wm_hidden, cfg.wm_layers, cfg.wm_heads)
     world_model.action_normalizer.fit(rows[keys.ACTION][~rows[keys.IS_FINAL]])
-    world_model.to(cfg.device)
+    world_model.to(device)
     wm_steps = cfg.wm_steps or cfg.wm_epochs * -(-len(train_anchors) // cfg.wm_batch_size)
     train_windows = wm_batch(train_anchors)  # small (latents and actions only): gathered once
     world_model = train_stage(LatentDynamicsLoss(world_model), world_model, train_windows, torch.arange(len(train_windows)), (cfg.wm_batch_size,), wm_steps, cfg.wm_optim, "dynamics").eval()
@@ -295,12 +304,15 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     ensemble_index = torch.arange(len(imagined))
     if ensemble_sources is not None:
         ensemble_index = torch.nonzero(ensemble_sources[rows[keys.SOURCE][windows.anchors[train_anchors]]]).squeeze(-1)
-    ensemble = ScorerEnsemble(encoder.latent_dim, cfg.ensemble_hidden, cfg.ensemble_members).to(cfg.device)
+    ensemble = ScorerEnsemble(encoder.latent_dim, cfg.ensemble_hidden, cfg.ensemble_members).to(device)
     ensemble_loss = ImaginedCompletionLoss(ensemble)
     ensemble_loss.set_keys(target=(keys.FUTURE, target_key))
     ensemble = train_stage(ensemble_loss, ensemble, imagined, ensemble_index, (cfg.ensemble_members, cfg.ensemble_batch_size),
                            cfg.ensemble_steps, cfg.ensemble_optim, "ensemble").eval()
 
+    if not distributed.is_main():
+        distributed.barrier()  # until rank 0 has written the checkpoint
+        return final
     encoder, scorer, world_model, ensemble = encoder.cpu(), scorer.cpu(), world_model.cpu(), ensemble.cpu()  # metrics and checkpoint on the CPU
     metrics = held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, torch.nonzero(held_anchor).squeeze(-1), wm_batch, target_key)
     metrics.update(held_out_imagined_metrics(scorer, ensemble, world_model, wm_batch(torch.nonzero(held_anchor).squeeze(-1)), target_key))
@@ -329,6 +341,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
         encoder_mode=cfg.encoder,
         config=config_dict(cfg),
     )
+    distributed.barrier()
     return final
 
 
