@@ -78,9 +78,9 @@ def evaluate_run(index: int, policy_path: str, world_model_path: str, cfg: Confi
     task = load_policy(policy_path, cfg.device).task
     common = dict(episodes=cfg.episodes, seed=cfg.seed, device=cfg.device, num_candidates=cfg.num_candidates,
                   actor_seed=cfg.actor_seed, selection=cfg.selection, common_noise=cfg.common_noise)
+    settings = {k: v for k, v in config_dict(cfg).items() if k not in ("policies", "world_models", "sources", "out")}
 
     def measured(name: str, measure) -> dict:
-        settings = {k: v for k, v in config_dict(cfg).items() if k not in ("policies", "world_models", "sources", "out")}
         inputs = json.loads(json.dumps({"policy": policy_path, "world_model": world_model_path, "method": name, **settings}))
         part = Path(cfg.out) / "parts" / f"{index}_{task}" / f"{name}.json"
         if part.exists() and (stored := json.loads(part.read_text()))["inputs"] == inputs:

@@ -311,6 +311,11 @@ class FlowMatchingPolicy3D(ChunkPolicy3D):
         velocity, or the clean chunk under ``flow_prediction="sample"``."""
         return self.unet(x, t * self.config.train_timesteps, cond)
 
+    def network_target(self, chunk: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """What :meth:`network` regresses anywhere on the straight path from ``noise`` to ``chunk``: the
+        velocity ``chunk - noise``, or the chunk itself under ``flow_prediction="sample"``."""
+        return chunk if self.config.flow_prediction == "sample" else chunk - noise
+
     def velocity(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         """The velocity at path time ``t``; a predicted clean chunk ``a`` gives ``(a - x) / (1 - t)``,
         the velocity that reaches it at ``t = 1``."""

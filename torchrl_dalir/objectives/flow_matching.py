@@ -41,4 +41,4 @@ class FlowMatchingLoss(ChunkGenerationLoss):
     def chunk_loss(self, cond: torch.Tensor, chunk: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         t = torch.rand(chunk.shape[0], device=chunk.device)
         out = self.policy.network(straight_path(t, chunk, noise), t, cond)
-        return torch.nn.functional.mse_loss(out, chunk if self.policy.config.flow_prediction == "sample" else chunk - noise)
+        return torch.nn.functional.mse_loss(out, self.policy.network_target(chunk, noise))
