@@ -228,16 +228,20 @@ def test_writer_finalizes_in_chunk_order(tmp_path):
     assert not (tmp_path / "shards").exists()
 
 
-def test_two_worker_collection_seeds_workers_apart_and_keeps_the_thread_count(tmp_path, monkeypatch, one_thread):
-    """Each collector worker seeds its env and its noise differently: no duplicate episodes. The process's
-    torch thread count is the caller's afterwards (TorchRL's collector raises it towards the count at import
-    on shutdown; results computed after a collection must not depend on it)."""
+def test_two_worker_collection_equals_one_worker_and_keeps_the_thread_count(tmp_path, monkeypatch, one_thread):
+    """Episodes are seeded one by one, not per worker: two workers collect the rows of one, reset seeds included,
+    and no episode twice. The process's torch thread count is the caller's afterwards (TorchRL's collector raises
+    it towards the count at import on shutdown; results computed after a collection must not depend on it)."""
     import torchrl
 
     monkeypatch.setattr(torchrl, "_THREAD_POOL_INIT", 4)
     sources = [Source("expert_noisy", 4, noise_scale=0.2)]
-    dataset = collect(SHORT_REACH, tmp_path, sources, seed=3, num_points=32, num_workers=2, chunk_size=4, progress=False)
+    kwargs = dict(seed=3, num_points=32, chunk_size=4, progress=False)
+    dataset = collect(SHORT_REACH, tmp_path / "two", sources, num_workers=2, **kwargs)
     assert torch.get_num_threads() == 1
     assert dataset.num_trajectories == 4
     first_states = dataset.rows[keys.PRIVILEGED_STATE][dataset.starts]
     assert len(torch.unique(first_states, dim=0)) == 4
+    one = collect(SHORT_REACH, tmp_path / "one", sources, num_workers=1, **kwargs)
+    assert (one.rows == dataset.rows).all()
+    assert one.meta.shards[0]["reset_seeds"] == dataset.meta.shards[0]["reset_seeds"] == [3_000_000 + i for i in range(4)]

@@ -1,0 +1,67 @@
+"""Collection on Ray (issue 19): the rows, reset seeds and labels of a dataset do not depend on the backend or on
+the number of workers, also when a collection interrupted on one backend is resumed on the other."""
+
+import sys
+
+import pytest
+import torch
+from conftest import SHORT_REACH
+
+from torchrl_dalir.config import parse_config
+from torchrl_dalir.data import Source, collect
+from torchrl_dalir.data.config import PRESETS, CollectionConfig
+
+RAY_CPUS = 2  # a local Ray instance: one CPU per collector actor
+
+
+@pytest.fixture
+def local_ray():
+    """A local Ray instance (no dashboard), shut down afterwards; ``collect`` joins it."""
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=RAY_CPUS, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+def test_a_collection_resumed_on_two_ray_workers_equals_one_local_worker(tmp_path, monkeypatch, local_ray):
+    """The first chunk is collected by one local worker, then the collection is killed; it resumes on two Ray
+    actors, which interleave their episodes: the dataset equals an uninterrupted one-worker collection row by
+    row, and every kept trajectory reset with the same seed."""
+    import torchrl_dalir.data.collection as collection
+
+    sources = [Source("expert", 1), Source("expert_noisy", 2, noise_scale=0.3)]
+    kwargs = dict(seed=6, num_points=32, chunk_size=2, progress=False)
+    reference = collect(SHORT_REACH, tmp_path / "reference", sources, num_workers=1, **kwargs)
+    collect_chunk = collection._collect_chunk
+
+    def killed_at_the_second_source(spec, source, source_index, *args):
+        if source_index == 1:
+            raise KeyboardInterrupt
+        return collect_chunk(spec, source, source_index, *args)
+
+    monkeypatch.setattr(collection, "_collect_chunk", killed_at_the_second_source)
+    with pytest.raises(KeyboardInterrupt):
+        collect(SHORT_REACH, tmp_path / "resumed", sources, num_workers=1, **kwargs)
+    monkeypatch.setattr(collection, "_collect_chunk", collect_chunk)
+    resumed = collect(SHORT_REACH, tmp_path / "resumed", sources, num_workers=2, backend="ray", **kwargs)
+    assert local_ray.is_initialized()  # joined, not shut down: the caller's runtime
+    assert (resumed.rows == reference.rows).all()
+    assert [s["reset_seeds"] for s in resumed.meta.shards] == [s["reset_seeds"] for s in reference.meta.shards]
+    assert torch.equal(resumed.terminal_labels(), reference.terminal_labels())
+
+
+def test_the_ray_backend_without_ray_says_how_to_install_it(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray fails
+    with pytest.raises(ImportError, match=r'pip install "torchrl_dalir\[ray\]"'):
+        collect(SHORT_REACH, tmp_path, [Source("expert", 1)], num_points=32, backend="ray", progress=False)
+
+
+def test_the_backend_is_a_validated_collection_setting():
+    cfg = parse_config(CollectionConfig, ["preset=smoke", "backend=ray", "ray_address=auto", "num_workers=4"], PRESETS)
+    kwargs = cfg.collection_kwargs()
+    assert (kwargs["backend"], kwargs["ray_init_config"], kwargs["num_workers"]) == ("ray", {"address": "auto"}, 4)
+    assert parse_config(CollectionConfig, ["preset=smoke"], PRESETS).collection_kwargs()["ray_init_config"] is None
+    with pytest.raises(ValueError, match="backend must be one of"):
+        parse_config(CollectionConfig, ["backend=spark"], PRESETS)
+    with pytest.raises(ValueError, match="backend must be one of"):
+        collect(SHORT_REACH, "unused", [Source("expert", 1)], backend="spark")
