@@ -1,7 +1,10 @@
 """Collection on Ray (issue 19): the rows, reset seeds and labels of a dataset do not depend on the backend or on
-the number of workers, also when a collection interrupted on one backend is resumed on the other."""
+the number of workers, also when a collection interrupted on one backend is resumed on the other; sweeps hand their
+runs to Ray."""
 
+import runpy
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -12,11 +15,12 @@ from torchrl_dalir.data import Source, collect
 from torchrl_dalir.data.config import PRESETS, CollectionConfig
 
 RAY_CPUS = 2  # a local Ray instance: one CPU per collector actor
+SWEEP = Path(__file__).resolve().parents[1] / "examples" / "sweep.py"
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def local_ray():
-    """A local Ray instance (no dashboard), shut down afterwards; ``collect`` joins it."""
+    """A local Ray instance (no dashboard) for the module's tests, shut down afterwards; ``collect`` joins it."""
     ray = pytest.importorskip("ray")
     ray.init(num_cpus=RAY_CPUS, include_dashboard=False, log_to_driver=False)
     yield ray
@@ -65,3 +69,22 @@ def test_the_backend_is_a_validated_collection_setting():
         parse_config(CollectionConfig, ["backend=spark"], PRESETS)
     with pytest.raises(ValueError, match="backend must be one of"):
         collect(SHORT_REACH, "unused", [Source("expert", 1)], backend="spark")
+
+
+def test_more_ray_workers_than_cpus_are_refused_not_left_waiting(tmp_path, local_ray):
+    with pytest.raises(ValueError, match=f"the Ray cluster has {RAY_CPUS} CPUs, fewer than num_workers={RAY_CPUS + 1}"):
+        collect(SHORT_REACH, tmp_path, [Source("expert", 1)], num_points=32, num_workers=RAY_CPUS + 1, backend="ray", progress=False)
+
+
+def test_the_sweep_hands_one_ray_task_per_run_and_records_what_the_local_launcher_records(tmp_path, local_ray, monkeypatch):
+    """Each run's process is stubbed (a main job takes minutes): the Ray launcher runs one task per run and returns
+    the local launcher's records, in the same order."""
+    sweep = runpy.run_path(str(SWEEP))
+    monkeypatch.setitem(sweep["run_one"].__globals__, "run_logged", lambda command, log, threads: (0, len(command[2])))  # seconds: len("task=...")
+    argv = ["tasks=[reach,door]", "seeds=[0,1]", f"out={tmp_path}"]
+    runs = [(task, seed) for seed in (0, 1) for task in ("reach", "door")]
+    local = sweep["launch"](parse_config(sweep["Config"], argv), runs)
+    on_ray = sweep["launch"](parse_config(sweep["Config"], [*argv, "launcher=ray"]), runs)
+    assert on_ray == local and [(r["task"], r["seed"], r["seconds"]) for r in on_ray] == [(t, s, len(f"task={t}")) for t, s in runs]
+    with pytest.raises(ValueError, match="launcher must be one of"):
+        parse_config(sweep["Config"], ["launcher=slurm"])

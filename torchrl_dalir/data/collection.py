@@ -40,13 +40,14 @@ from torchrl_dalir.data.storage import DatasetMeta, DatasetWriter, TrajectoryDat
 from torchrl_dalir.envs import TaskSpec, action_bounds, get_task, make_env
 from torchrl_dalir.experts import DriftNoise, make_expert
 from torchrl_dalir.seeds import check_data_seed
+from torchrl_dalir.utils import import_ray
 
 SEEDS_PER_DATASET = 1_000_000  # chunk c of dataset seed s resets its episodes with s * 1e6 + c * 1e3 + attempt
 SEEDS_PER_CHUNK = 1_000  # hence at most this many attempts per chunk
 FRAMES_PER_WORKER = 64  # env steps per worker between two gathers
 POLICY_SEED_OFFSET = 1 << 40  # an episode's policy samples from its seed + this: a stream apart from its drift noise's
 BACKENDS = ("local", "ray")
-RAY_MISSING = 'backend="ray" needs Ray: pip install "torchrl_dalir[ray]"'
+RAY_ACTOR_RESOURCES = {"num_cpus": 1}  # a collector actor steps one env (no GPU, no memory reservation)
 
 
 @dataclass
@@ -147,12 +148,14 @@ def split_episodes(pieces: dict[int, list[TensorDictBase]], batch: TensorDictBas
     return completed
 
 
-def _import_ray():
-    try:
-        import ray
-    except ImportError as error:
-        raise ImportError(RAY_MISSING) from error
-    return ray
+def _check_ray_cpus(ray, workers: int) -> None:
+    """Refuses more collector actors than the Ray cluster has CPUs: the actors left over would wait forever."""
+    cpus = ray.cluster_resources().get("CPU", 0)
+    if cpus < workers * RAY_ACTOR_RESOURCES["num_cpus"]:
+        raise ValueError(
+            f"the Ray cluster has {cpus:g} CPUs, fewer than num_workers={workers} collector actors of one CPU each "
+            f"would need: lower num_workers, or start Ray with more (ray_init_config={{'num_cpus': {workers}}})"
+        )
 
 
 def _make_collector(backend: str, env_fns: list[Callable], policy_fn: Callable, ray_init_config: dict | None):
@@ -166,6 +169,7 @@ def _make_collector(backend: str, env_fns: list[Callable], policy_fn: Callable, 
         return RayCollector(
             env_fns, policy_factory=[policy_fn] * workers, frames_per_batch=frames, total_frames=sys.maxsize,  # -1 stops it at once
             collector_class=Collector, sync=True, num_collectors=workers, ray_init_config=ray_init_config,
+            remote_configs=RAY_ACTOR_RESOURCES,
         )
     if workers > 1:  # env and policy step in each worker process; this process only gathers
         return MultiSyncCollector(env_fns, policy_factory=[policy_fn] * workers, frames_per_batch=frames, total_frames=-1, cat_results="stack")
@@ -243,11 +247,13 @@ def collect(
     total = sum(s.num_trajectories for s in sources)
     cfg = dict(num_workers=num_workers, num_points=num_points, noise_correlation=noise_correlation, gamma=gamma,
                successes_only=successes_only, backend=backend, ray_init_config=ray_init_config)
-    ray = _import_ray() if backend == "ray" and todo else None
+    ray = import_ray('backend="ray"') if backend == "ray" and todo else None
     started_ray = ray is not None and not ray.is_initialized()
     if started_ray:  # one Ray runtime for every chunk (each chunk's collector would start and stop its own)
         ray.init(**(ray_init_config or {}))
     try:
+        if ray is not None:
+            _check_ray_cpus(ray, num_workers)
         with tqdm(total=total, initial=writer.meta.num_trajectories, desc=f"collect {spec.name}", unit="traj", disable=not progress) as bar:
             for chunk, source_index, count in todo:
                 chunk_seed = check_data_seed(seed * SEEDS_PER_DATASET + chunk * SEEDS_PER_CHUNK)
