@@ -5,7 +5,7 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import SHORT_REACH, killed_at_the_complete_mark, still_policy, synthetic_trajectory
+from conftest import SHORT_REACH, killed_at_source, killed_at_the_complete_mark, still_policy, synthetic_trajectory
 
 from torchrl_dalir import keys
 from torchrl_dalir.data import DatasetWriter, Source, TrajectoryDataset, collect, trajectory_rows
@@ -102,32 +102,21 @@ def test_interrupted_collection_resumes_to_the_same_data(tmp_path, monkeypatch):
     assert [s["chunk"] for s in resumed.meta.shards] == [0, 1, 2]
 
 
-def test_interrupted_base_policy_collection_resumes_to_the_same_data(trained_policy, tmp_path, monkeypatch):
-    """The sampling noise of the base policy (and of its exploration actor) is seeded per chunk and worker, not
+def test_interrupted_base_policy_collection_resumes_to_the_same_data(trained_policy, tmp_path):
+    """The sampling noise of the base policy (and of its exploration actor) is seeded per episode, not
     taken from torch's global generator: killed after a chunk and resumed, a collection equals an uninterrupted
     one row by row, whatever state torch's generator is in."""
-    import torchrl_dalir.data.collection as collection
     from torchrl_dalir.training.policy import exploration_actor, policy_actor
 
-    monkeypatch.setattr(collection, "FRAMES_PER_WORKER", 8)  # gather every decision: no steps beyond the trajectories
     path = str(trained_policy[1])
     sources = [Source("exploration", 1, policy=partial(exploration_actor, path), expert=False, history=2),
                Source("base_policy", 1, policy=partial(policy_actor, path), expert=False, history=2)]
     kwargs = dict(seed=4, num_points=64, num_workers=1, chunk_size=1, progress=False)
     torch.manual_seed(0)
     reference = collect(TINY_REACH, tmp_path / "reference", sources, **kwargs)
-    collect_chunk = collection._collect_chunk
-
-    def killed_at_the_base_policy_chunk(spec, source, source_index, *args):
-        if source_index == 1:
-            raise KeyboardInterrupt
-        return collect_chunk(spec, source, source_index, *args)
-
-    monkeypatch.setattr(collection, "_collect_chunk", killed_at_the_base_policy_chunk)
     torch.manual_seed(1)
-    with pytest.raises(KeyboardInterrupt):
+    with killed_at_source(1), pytest.raises(KeyboardInterrupt):
         collect(TINY_REACH, tmp_path / "resumed", sources, **kwargs)
-    monkeypatch.setattr(collection, "_collect_chunk", collect_chunk)
     torch.manual_seed(2)  # the resumed process's global generator is in another state
     resumed = collect(TINY_REACH, tmp_path / "resumed", sources, **kwargs)
     assert (resumed.rows == reference.rows).all()

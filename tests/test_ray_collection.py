@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import SHORT_REACH
+from conftest import SHORT_REACH, killed_at_source
 
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.data import Source, collect
@@ -27,26 +27,15 @@ def local_ray():
     ray.shutdown()
 
 
-def test_a_collection_resumed_on_two_ray_workers_equals_one_local_worker(tmp_path, monkeypatch, local_ray):
+def test_a_collection_resumed_on_two_ray_workers_equals_one_local_worker(tmp_path, local_ray):
     """The first chunk is collected by one local worker, then the collection is killed; it resumes on two Ray
     actors, which interleave their episodes: the dataset equals an uninterrupted one-worker collection row by
     row, and every kept trajectory reset with the same seed."""
-    import torchrl_dalir.data.collection as collection
-
     sources = [Source("expert", 1), Source("expert_noisy", 2, noise_scale=0.3)]
     kwargs = dict(seed=6, num_points=32, chunk_size=2, progress=False)
     reference = collect(SHORT_REACH, tmp_path / "reference", sources, num_workers=1, **kwargs)
-    collect_chunk = collection._collect_chunk
-
-    def killed_at_the_second_source(spec, source, source_index, *args):
-        if source_index == 1:
-            raise KeyboardInterrupt
-        return collect_chunk(spec, source, source_index, *args)
-
-    monkeypatch.setattr(collection, "_collect_chunk", killed_at_the_second_source)
-    with pytest.raises(KeyboardInterrupt):
+    with killed_at_source(1), pytest.raises(KeyboardInterrupt):
         collect(SHORT_REACH, tmp_path / "resumed", sources, num_workers=1, **kwargs)
-    monkeypatch.setattr(collection, "_collect_chunk", collect_chunk)
     resumed = collect(SHORT_REACH, tmp_path / "resumed", sources, num_workers=2, backend="ray", **kwargs)
     assert local_ray.is_initialized()  # joined, not shut down: the caller's runtime
     assert (resumed.rows == reference.rows).all()
