@@ -199,6 +199,25 @@ def test_a_crash_before_the_complete_mark_resumes_to_the_complete_dataset(tmp_pa
     assert is_complete(root) and (resumed.rows == reference.rows).all() and not (root / "shards").exists()
 
 
+def _without_seeding(root):
+    """Makes ``root``'s meta.json look written before the ``seeding`` field (per-worker seeds)."""
+    meta = json.loads((root / "meta.json").read_text())
+    del meta["seeding"]
+    (root / "meta.json").write_text(json.dumps(meta))
+
+
+def test_a_dataset_seeded_per_worker_loads_but_is_not_resumed(tmp_path):
+    """Datasets collected before episodes were seeded one by one still load; an unfinished one is refused for
+    resumption, which would mix the two seedings."""
+    _synthetic_dataset(tmp_path / "complete").finalize()
+    _without_seeding(tmp_path / "complete")
+    assert TrajectoryDataset.load(tmp_path / "complete").meta.seeding == "worker"
+    _synthetic_dataset(tmp_path / "unfinished")
+    _without_seeding(tmp_path / "unfinished")
+    with pytest.raises(ValueError, match="older version of the library, which seeded each worker"):
+        DatasetWriter(tmp_path / "unfinished", DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[]))
+
+
 def test_writer_finalizes_in_chunk_order(tmp_path):
     meta = DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[])
     writer = DatasetWriter(tmp_path, meta)
