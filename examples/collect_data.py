@@ -2,6 +2,10 @@
 
     python examples/collect_data.py task=disassemble preset=cpu
     python examples/collect_data.py task=shelf-place preset=paper num_workers=2 out=outputs/data
+    python examples/collect_data.py task=shelf-place preset=paper backend=ray ray_address=auto num_workers=32
+
+The data are the same whatever ``backend`` and ``num_workers`` (``backend=ray`` needs
+``pip install "torchrl_dalir[ray]"``; ``ray_address=auto`` joins the cluster of ``ray start``).
 
 Writes ``<out>/<task>/demos`` and ``<out>/<task>/mixed`` (TorchRL memory-mapped datasets) and
 prints what they hold. Re-running loads finished datasets and resumes unfinished ones.
@@ -32,7 +36,7 @@ def describe(name: str, dataset: TrajectoryDataset, seconds: float) -> None:
 
 def main(argv: list[str]) -> None:
     cfg = parse_config(CollectionConfig, argv, PRESETS)
-    common = dict(gamma=cfg.gamma, num_points=cfg.num_points, num_workers=cfg.num_workers, chunk_size=cfg.chunk_size, progress=cfg.progress)
+    common = cfg.collection_kwargs()
     if cfg.stage in ("demos", "all"):
         start = time.perf_counter()
         demos = collect(cfg.task, cfg.demos_dir(), [Source("expert", cfg.num_demos)], seed=2 * cfg.seed, successes_only=True, **common)

@@ -2,12 +2,19 @@
 
     python examples/sweep.py out=outputs/pipeline                       # 4 MetaWorld tasks x 3 seeds, FM
     python examples/sweep.py tasks=[shelf-place] seeds=[1,2] policy=dp jobs=1 threads=2
+    python examples/sweep.py launcher=ray ray_address=auto threads=2 out=/shared/pipeline   # on a Ray cluster
 
 Every run is its own ``examples/train_dp3_wm.py`` process, so a run that crashes does not stop
 the others, and a stopped sweep resumes where it was (finished stages are skipped). Runs go
 seed-major (every task's seed 0 first) ``jobs`` at a time with ``threads`` threads each; on a
 2-core CPU two one-thread runs side by side use the cores better than one two-thread run.
 Each run's output goes to ``<out>/logs/``; exit codes and wall times to ``<out>/sweep.json``.
+
+With ``launcher=ray`` every run is a Ray task of ``threads`` CPUs instead (``pip install
+"torchrl_dalir[ray]"``): on the cluster that ``ray_address`` names (``auto``: the one ``ray start``
+runs on this machine), or on a local Ray instance of ``jobs * threads`` CPUs. Every node must see
+this checkout, its Python and ``out`` at the same paths (a shared filesystem); the summary is made
+from ``out`` as with the local launcher.
 """
 
 from __future__ import annotations
@@ -19,11 +26,12 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from torchrl_dalir.config import config_dict, parse_config
+from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
-from torchrl_dalir.utils import atomic_write, run_logged
+from torchrl_dalir.utils import atomic_write, import_ray, run_logged
 
 EXAMPLES = Path(__file__).resolve().parent
+LAUNCHERS = ("local", "ray")
 
 
 @dataclass
@@ -33,9 +41,14 @@ class Config:
     policy: str = "fm"
     preset: str = "cpu"
     out: str = "outputs/pipeline"
-    jobs: int = 2  # runs side by side
+    jobs: int = 2  # runs side by side (with launcher=ray and a cluster: as many as its CPUs allow)
     threads: int = 1  # torch threads per run
     overrides: list[str] = field(default_factory=list)  # passed to every run, e.g. [eval_episodes=100]
+    launcher: str = "local"  # local (processes here) | ray (one Ray task per run)
+    ray_address: str = ""  # with launcher=ray: the cluster to join; "" starts a local instance
+
+    def __post_init__(self):
+        check_choice("launcher", self.launcher, LAUNCHERS)
 
 
 def run_arguments(cfg: Config, task: str, seed: int) -> list[str]:
@@ -50,13 +63,31 @@ def run_one(cfg: Config, task: str, seed: int) -> dict:
     return {"task": task, "seed": seed, "policy": cfg.policy, "exit_code": code, "seconds": round(seconds, 1), "log": str(log)}
 
 
+def launch(cfg: Config, runs: list[tuple[str, int]]) -> list[dict]:
+    """Runs every ``(task, seed)`` with ``cfg.launcher``; their records come back in the order of ``runs``."""
+    if cfg.launcher == "local":
+        with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
+            return list(pool.map(lambda run: run_one(cfg, *run), runs))
+    ray = import_ray("launcher=ray")
+    started = not ray.is_initialized()
+    if started and cfg.ray_address:
+        ray.init(address=cfg.ray_address)
+    elif started:
+        ray.init(num_cpus=cfg.jobs * cfg.threads, include_dashboard=False)
+    try:
+        remote = ray.remote(num_cpus=cfg.threads)(run_one)
+        return ray.get([remote.remote(cfg, *run) for run in runs])
+    finally:
+        if started:
+            ray.shutdown()
+
+
 def main(argv: list[str]) -> None:
     cfg = parse_config(Config, argv)
     runs = [(task, seed) for seed in cfg.seeds for task in cfg.tasks]
     for run in runs:  # a bad task, policy, preset or override fails now, not an hour into the sweep
         parse_config(PipelineConfig, run_arguments(cfg, *run), PRESETS)
-    with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
-        records = list(pool.map(lambda run: run_one(cfg, *run), runs))
+    records = launch(cfg, runs)
     atomic_write(Path(cfg.out) / "sweep.json", json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))
     subprocess.run([sys.executable, str(EXAMPLES / "summarize_results.py"), f"out={cfg.out}"], check=True)
     failed = [r for r in records if r["exit_code"] != 0]

@@ -87,6 +87,26 @@ def killed_at_the_complete_mark():
         storage._write_meta = write_meta
 
 
+@contextlib.contextmanager
+def killed_at_source(source_index: int):
+    """Inside, a collection is killed (``KeyboardInterrupt``) when it is about to collect a chunk of source
+    ``source_index``: the chunks of the sources before it are stored."""
+    from torchrl_dalir.data import collection
+
+    collect_chunk = collection._collect_chunk
+
+    def killed(spec, source, index, *args):
+        if index == source_index:
+            raise KeyboardInterrupt
+        return collect_chunk(spec, source, index, *args)
+
+    collection._collect_chunk = killed
+    try:
+        yield
+    finally:
+        collection._collect_chunk = collect_chunk
+
+
 @pytest.fixture(scope="session")
 def collected(tmp_path_factory):
     """A dataset of SHORT_REACH: 2 expert trajectories, 2 noisy ones, 1 still one (a time-out)."""

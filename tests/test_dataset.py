@@ -5,7 +5,7 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import SHORT_REACH, killed_at_the_complete_mark, still_policy, synthetic_trajectory
+from conftest import SHORT_REACH, killed_at_source, killed_at_the_complete_mark, still_policy, synthetic_trajectory
 
 from torchrl_dalir import keys
 from torchrl_dalir.data import DatasetWriter, Source, TrajectoryDataset, collect, trajectory_rows
@@ -102,32 +102,21 @@ def test_interrupted_collection_resumes_to_the_same_data(tmp_path, monkeypatch):
     assert [s["chunk"] for s in resumed.meta.shards] == [0, 1, 2]
 
 
-def test_interrupted_base_policy_collection_resumes_to_the_same_data(trained_policy, tmp_path, monkeypatch):
-    """The sampling noise of the base policy (and of its exploration actor) is seeded per chunk and worker, not
+def test_interrupted_base_policy_collection_resumes_to_the_same_data(trained_policy, tmp_path):
+    """The sampling noise of the base policy (and of its exploration actor) is seeded per episode, not
     taken from torch's global generator: killed after a chunk and resumed, a collection equals an uninterrupted
     one row by row, whatever state torch's generator is in."""
-    import torchrl_dalir.data.collection as collection
     from torchrl_dalir.training.policy import exploration_actor, policy_actor
 
-    monkeypatch.setattr(collection, "FRAMES_PER_WORKER", 8)  # gather every decision: no steps beyond the trajectories
     path = str(trained_policy[1])
     sources = [Source("exploration", 1, policy=partial(exploration_actor, path), expert=False, history=2),
                Source("base_policy", 1, policy=partial(policy_actor, path), expert=False, history=2)]
     kwargs = dict(seed=4, num_points=64, num_workers=1, chunk_size=1, progress=False)
     torch.manual_seed(0)
     reference = collect(TINY_REACH, tmp_path / "reference", sources, **kwargs)
-    collect_chunk = collection._collect_chunk
-
-    def killed_at_the_base_policy_chunk(spec, source, source_index, *args):
-        if source_index == 1:
-            raise KeyboardInterrupt
-        return collect_chunk(spec, source, source_index, *args)
-
-    monkeypatch.setattr(collection, "_collect_chunk", killed_at_the_base_policy_chunk)
     torch.manual_seed(1)
-    with pytest.raises(KeyboardInterrupt):
+    with killed_at_source(1), pytest.raises(KeyboardInterrupt):
         collect(TINY_REACH, tmp_path / "resumed", sources, **kwargs)
-    monkeypatch.setattr(collection, "_collect_chunk", collect_chunk)
     torch.manual_seed(2)  # the resumed process's global generator is in another state
     resumed = collect(TINY_REACH, tmp_path / "resumed", sources, **kwargs)
     assert (resumed.rows == reference.rows).all()
@@ -210,6 +199,25 @@ def test_a_crash_before_the_complete_mark_resumes_to_the_complete_dataset(tmp_pa
     assert is_complete(root) and (resumed.rows == reference.rows).all() and not (root / "shards").exists()
 
 
+def _without_seeding(root):
+    """Makes ``root``'s meta.json look written before the ``seeding`` field (per-worker seeds)."""
+    meta = json.loads((root / "meta.json").read_text())
+    del meta["seeding"]
+    (root / "meta.json").write_text(json.dumps(meta))
+
+
+def test_a_dataset_seeded_per_worker_loads_but_is_not_resumed(tmp_path):
+    """Datasets collected before episodes were seeded one by one still load; an unfinished one is refused for
+    resumption, which would mix the two seedings."""
+    _synthetic_dataset(tmp_path / "complete").finalize()
+    _without_seeding(tmp_path / "complete")
+    assert TrajectoryDataset.load(tmp_path / "complete").meta.seeding == "worker"
+    _synthetic_dataset(tmp_path / "unfinished")
+    _without_seeding(tmp_path / "unfinished")
+    with pytest.raises(ValueError, match="older version of the library, which seeded each worker"):
+        DatasetWriter(tmp_path / "unfinished", DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[]))
+
+
 def test_writer_finalizes_in_chunk_order(tmp_path):
     meta = DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[])
     writer = DatasetWriter(tmp_path, meta)
@@ -228,16 +236,20 @@ def test_writer_finalizes_in_chunk_order(tmp_path):
     assert not (tmp_path / "shards").exists()
 
 
-def test_two_worker_collection_seeds_workers_apart_and_keeps_the_thread_count(tmp_path, monkeypatch, one_thread):
-    """Each collector worker seeds its env and its noise differently: no duplicate episodes. The process's
-    torch thread count is the caller's afterwards (TorchRL's collector raises it towards the count at import
-    on shutdown; results computed after a collection must not depend on it)."""
+def test_two_worker_collection_equals_one_worker_and_keeps_the_thread_count(tmp_path, monkeypatch, one_thread):
+    """Episodes are seeded one by one, not per worker: two workers collect the rows of one, reset seeds included,
+    and no episode twice. The process's torch thread count is the caller's afterwards (TorchRL's collector raises
+    it towards the count at import on shutdown; results computed after a collection must not depend on it)."""
     import torchrl
 
     monkeypatch.setattr(torchrl, "_THREAD_POOL_INIT", 4)
     sources = [Source("expert_noisy", 4, noise_scale=0.2)]
-    dataset = collect(SHORT_REACH, tmp_path, sources, seed=3, num_points=32, num_workers=2, chunk_size=4, progress=False)
+    kwargs = dict(seed=3, num_points=32, chunk_size=4, progress=False)
+    dataset = collect(SHORT_REACH, tmp_path / "two", sources, num_workers=2, **kwargs)
     assert torch.get_num_threads() == 1
     assert dataset.num_trajectories == 4
     first_states = dataset.rows[keys.PRIVILEGED_STATE][dataset.starts]
     assert len(torch.unique(first_states, dim=0)) == 4
+    one = collect(SHORT_REACH, tmp_path / "one", sources, num_workers=1, **kwargs)
+    assert (one.rows == dataset.rows).all()
+    assert one.meta.shards[0]["reset_seeds"] == dataset.meta.shards[0]["reset_seeds"] == [3_000_000 + i for i in range(4)]

@@ -1,3 +1,4 @@
+import dataclasses
 from functools import partial
 
 import numpy as np
@@ -57,6 +58,21 @@ def test_same_seed_same_episode(task):
     first, again, other = run(3), run(3), run(4)
     assert torch.equal(first[0], again[0]) and torch.equal(first[1], again[1])
     assert not torch.equal(first[1], other[1])
+
+
+def test_seed_stride_resets_every_episode_with_a_seed_of_its_own():
+    """Episode i resets with seed + i * stride whatever ran before it, and says so; a reset without a step in
+    between takes no new seed; the env passes TorchRL's spec check with the seed in its observations."""
+    short = dataclasses.replace(SHORT_REACH, max_steps=3)
+    check_env_specs(make_env(short, seed=10, seed_stride=4, num_points=16))
+    env = make_env(short, seed=10, seed_stride=4, num_points=16)
+    env.reset()  # then the rollout's own reset
+    rollout = env.rollout(9, break_when_any_done=False)  # three episodes of three steps
+    assert rollout[keys.EPISODE_SEED].flatten().tolist() == [10] * 3 + [14] * 3 + [18] * 3
+    alone = make_env(short, seed=14, seed_stride=4, num_points=16).reset()
+    assert torch.equal(alone[keys.PRIVILEGED_STATE], rollout[keys.PRIVILEGED_STATE][3])
+    with pytest.raises(ValueError, match="seed_stride needs a seed"):
+        make_env(short, seed=None, seed_stride=4)
 
 
 def test_episode_terminates_at_first_success():

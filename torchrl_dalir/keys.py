@@ -14,6 +14,7 @@ DONE = "done"
 TERMINATED = "terminated"
 TRUNCATED = "truncated"
 IS_INIT = "is_init"  # written by TorchRL's InitTracker at episode starts
+EPISODE_SEED = "episode_seed"  # [..., 1] int64, the reset seed of the episode (make_env(..., seed_stride=k) only)
 PIXELS = "pixels"  # [..., H, W, 3] uint8, an RGB render from the task's camera (make_env(..., pixels=size), for videos)
 
 # Dataset (one row per observation of a stored trajectory).

@@ -1,4 +1,4 @@
-"""Small shared helpers: atomic file writes, writable folders, digests of weights, logged job processes."""
+"""Small shared helpers: atomic file writes, writable folders, digests of weights, logged job processes, Ray."""
 
 from __future__ import annotations
 
@@ -91,3 +91,12 @@ def run_logged(command: list[str], log: str | Path, threads: int = 1) -> tuple[i
     with log.open("a") as stream:
         code = subprocess.run(command, stdout=stream, stderr=subprocess.STDOUT, env=env).returncode
     return code, time.perf_counter() - start
+
+
+def import_ray(what: str):
+    """The ``ray`` module, or an ``ImportError`` saying how to install it (``what`` needs it)."""
+    try:
+        import ray
+    except ImportError as error:
+        raise ImportError(f'{what} needs Ray: pip install "torchrl_dalir[ray]"') from error
+    return ray

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchrl_dalir.config import check_at_least, check_choice
-from torchrl_dalir.data.collection import Source
+from torchrl_dalir.data.collection import BACKENDS, Source
 from torchrl_dalir.envs.tasks import get_task
 
 
@@ -31,13 +31,16 @@ class CollectionConfig:
     noise_correlation: float = 0.9
     gamma: float = 0.99
     num_points: int = 512
-    num_workers: int = 2
+    num_workers: int = 2  # collector workers; the data do not depend on it
+    backend: str = "local"  # local (worker processes here) | ray (Ray actors; pip install "torchrl_dalir[ray]")
+    ray_address: str = ""  # with backend=ray: the cluster to join ("auto": the one started on this machine); "" starts a local one
     chunk_size: int = 100
     progress: bool = True
 
     def __post_init__(self):
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("stage", self.stage, ("demos", "mixed", "all"))
+        check_choice("backend", self.backend, BACKENDS)
         for name, minimum in (("chunk_size", 1), ("num_points", 1), ("num_workers", 1), ("num_demos", 1), ("num_mixed", 0), ("seed", 0)):
             check_at_least(name, getattr(self, name), minimum)
         check_at_least("the number of noise_scales", len(self.noise_scales), 1)
@@ -50,6 +53,12 @@ class CollectionConfig:
 
     def mixed_dir(self) -> Path:
         return self.task_dir() / self.mixed_name
+
+    def collection_kwargs(self) -> dict:
+        """The keywords of :func:`~torchrl_dalir.data.collect` that the demos and the mixed data share."""
+        ray_init_config = {"address": self.ray_address} if self.ray_address else None
+        return dict(gamma=self.gamma, num_points=self.num_points, num_workers=self.num_workers, chunk_size=self.chunk_size,
+                    progress=self.progress, backend=self.backend, ray_init_config=ray_init_config)
 
     def mixed_sources(self) -> list[Source]:
         counts = [self.num_mixed // len(self.noise_scales)] * len(self.noise_scales)

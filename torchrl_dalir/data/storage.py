@@ -30,6 +30,7 @@ from torchrl_dalir import keys
 from torchrl_dalir.utils import atomic_write
 
 FORMAT_VERSION = 1
+SEEDING = "episode"  # every episode resets with a seed of its own; "worker" (meta.json without the field): one stream per worker
 
 
 @dataclass
@@ -52,6 +53,7 @@ class DatasetMeta:
     complete: bool = False
     format_version: int = FORMAT_VERSION
     library_version: str = ""
+    seeding: str = SEEDING
 
     @property
     def num_trajectories(self) -> int:
@@ -82,6 +84,7 @@ def _read_meta(root: Path) -> DatasetMeta:
     if not path.exists():
         raise FileNotFoundError(f"no dataset at {root}: {path} is missing")
     content = _read_json(path)
+    content.setdefault("seeding", "worker")  # written before the field
     try:
         return DatasetMeta(**content)
     except TypeError as error:
@@ -174,6 +177,11 @@ class DatasetWriter:
                     f"{self.root} holds a dataset collected with another configuration:\n"
                     f"  on disk:   {existing.plan()}\n  requested: {meta.plan()}\n"
                     "choose another directory, or delete this one to start over"
+                )
+            if not existing.complete and existing.seeding != meta.seeding:
+                raise ValueError(
+                    f"{self.root} was partly collected by an older version of the library, which seeded each worker, "
+                    "not each episode: resuming would mix the two; delete it to collect it again"
                 )
             self.meta = existing
             if existing.complete:  # finishes a finalize interrupted after the complete mark

@@ -32,6 +32,42 @@ class _MetaWorldSeeding(gym.Wrapper):
         return self.env.reset(options=options)
 
 
+class EpisodeSeeds(gym.Wrapper):
+    """Resets episode ``i`` with seed ``first + i * stride`` and reports it as ``info["episode_seed"]`` (at the
+    reset and every step), so that each episode depends on its seed only, not on what ran before it in the env.
+
+    A reset that follows another one without a step in between starts no episode and takes no new seed (TorchRL
+    may reset twice before the first step); an explicit ``reset(seed=s)`` restarts the schedule at ``s``.
+    """
+
+    def __init__(self, env: gym.Env, first: int, stride: int):
+        super().__init__(env)
+        self.next_seed, self.stride = first, stride
+        self.seed_now: int | None = None
+
+    @property
+    def task(self) -> TaskSpec:  # what env_task reads through TorchRL's GymWrapper
+        return self.env.task
+
+    def reset(self, *, seed=None, options=None):
+        if seed is not None:
+            self.next_seed = seed
+        elif self.seed_now is not None and not self._stepped:
+            self.next_seed = self.seed_now  # the last reset started no episode: take its seed again
+        self.seed_now, self._stepped = self.next_seed, False
+        self.next_seed += self.stride
+        observation, info = self.env.reset(seed=self.seed_now, options=options)
+        return observation, self._tagged(info)
+
+    def step(self, action):
+        self._stepped = True
+        *out, info = self.env.step(action)
+        return *out, self._tagged(info)
+
+    def _tagged(self, info: dict) -> dict:
+        return {**info, keys.EPISODE_SEED: np.array([self.seed_now], dtype=np.int64)}
+
+
 def make_simulator(task: TaskSpec) -> gym.Env:
     """The raw gymnasium env of a task, with its step limit and the privileged state observation."""
     if task.suite == METAWORLD:

@@ -5,14 +5,14 @@ from __future__ import annotations
 from functools import cache
 
 import torch
-from torchrl.data import Categorical, Composite
+from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, GymWrapper, InitTracker, ParallelEnv, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.gym_like import default_info_dict_reader
 
 from torchrl_dalir import keys
 from torchrl_dalir.config import check_at_least
-from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+from torchrl_dalir.envs.gym_env import EpisodeSeeds, PointCloudObservation, make_simulator
 from torchrl_dalir.envs.history import append_history
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 
@@ -21,6 +21,7 @@ def make_env(
     task: str | TaskSpec,
     *,
     seed: int | None = 0,
+    seed_stride: int = 0,
     num_points: int = 512,
     render: bool = True,
     history: int = 1,
@@ -42,6 +43,10 @@ def make_env(
             worker the same seed, hence the same episode (TorchRL passes reset keywords to each
             worker); seed the workers apart with ``env.set_seed(s)`` or
             ``env.reset(list_of_kwargs=[{"seed": s + i} for i in range(env.num_workers)])``.
+        seed_stride: with ``k > 0``, episode ``i`` resets with ``seed + i * k`` (an episode then depends on its
+            seed only, not on the episodes before it) and the observations carry that seed as ``episode_seed``;
+            a collection's worker ``w`` of ``k`` runs episodes ``seed + w``, ``seed + w + k``, ... this way.
+            ``0`` (the default): later episodes follow from the simulator's own generator.
         num_points: points per cloud after farthest-point sampling. If the task's crop box holds
             fewer pixels of the depth image than that, points repeat (a warning at the first
             observation says how many are distinct).
@@ -65,14 +70,21 @@ def make_env(
     check_at_least("num_points", num_points, 1)
     check_at_least("history", history, 1)
     check_at_least("pixels", pixels, 0)
+    check_at_least("seed_stride", seed_stride, 0)
+    if seed_stride and seed is None:
+        raise ValueError("seed_stride needs a seed: the first episode's")
     spec = get_task(task)
-    env = GymWrapper(PointCloudObservation(make_simulator(spec), spec, num_points, render, pixels), device=device)
-    success_spec = Composite({keys.SUCCESS: Categorical(2, shape=(1,), dtype=torch.bool, device=device)})
-    env.set_info_dict_reader(default_info_dict_reader([keys.SUCCESS], spec=success_spec))
+    simulator = PointCloudObservation(make_simulator(spec), spec, num_points, render, pixels)
+    info_spec = Composite({keys.SUCCESS: Categorical(2, shape=(1,), dtype=torch.bool, device=device)})
+    if seed_stride:
+        simulator = EpisodeSeeds(simulator, seed, seed_stride)
+        info_spec[keys.EPISODE_SEED] = Unbounded(shape=(1,), dtype=torch.int64, device=device)
+    env = GymWrapper(simulator, device=device)
+    env.set_info_dict_reader(default_info_dict_reader(list(info_spec.keys()), spec=info_spec))
     env = TransformedEnv(env, InitTracker())
     if history > 1:
         append_history(env, history, [(keys.AGENT_POS, -2)] + ([(keys.POINT_CLOUD, -3)] if render else []))
-    if seed is not None:
+    if seed is not None and not seed_stride:
         env.set_seed(seed)
     return env
 

@@ -55,6 +55,12 @@ class DriftNoise(TensorDictModuleBase):
         self.generator = torch.Generator().manual_seed(seed)
         self._noise: torch.Tensor | None = None
 
+    def reset(self, seed: int) -> None:
+        """Restarts the noise from its stationary law, the generator seeded with ``seed`` (at an episode start,
+        so that the episode's noise depends on ``seed`` only)."""
+        self.generator.manual_seed(seed)
+        self._noise = None
+
     def _sample(self, like: torch.Tensor) -> torch.Tensor:
         eps = torch.randn(like.shape, generator=self.generator, dtype=torch.float32)
         return eps.to(like.device) * self.scale.to(like.device)

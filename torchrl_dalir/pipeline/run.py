@@ -49,7 +49,7 @@ def run_pipeline(cfg: PipelineConfig) -> Path:
     """Runs every stage of ``cfg`` up to ``cfg.until``, skipping finished ones; returns the
     results folder (``results.md``, ``results.json``, diagnostic plots)."""
     data = cfg.collection
-    common = dict(gamma=data.gamma, num_points=data.num_points, num_workers=data.num_workers, chunk_size=data.chunk_size, progress=data.progress)
+    common = data.collection_kwargs()
     policy_path = cfg.policy_training.run_dir() / "checkpoint.pt"
     world_model_path = cfg.world_model.run_dir() / "world_model.pt"
     results = cfg.results_dir()
