@@ -58,6 +58,8 @@ def gather(root: Path) -> list[dict]:
                                   **{m: [] for m in METHODS}})
     for path in sorted(root.glob("results/*/*/results.json")):
         result = json.loads(path.read_text())
+        if not {METHODS["base"], METHODS["dalir"]} <= set(result["success"]):
+            continue  # a run of some methods only (Table 3's variants: the arg-max alone) has its own table
         cfg = result["config"]
         run = path.parent.name
         group = groups[(cfg["task"], cfg["policy"], variant_label(run, cfg["policy"], cfg["seed"]))]
