@@ -28,7 +28,7 @@ from pathlib import Path
 
 from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
-from torchrl_dalir.utils import atomic_write, import_ray, run_logged
+from torchrl_dalir.utils import atomic_write, ray_runtime, run_logged
 
 EXAMPLES = Path(__file__).resolve().parent
 LAUNCHERS = ("local", "ray")
@@ -68,18 +68,10 @@ def launch(cfg: Config, runs: list[tuple[str, int]]) -> list[dict]:
     if cfg.launcher == "local":
         with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
             return list(pool.map(lambda run: run_one(cfg, *run), runs))
-    ray = import_ray("launcher=ray")
-    started = not ray.is_initialized()
-    if started and cfg.ray_address:
-        ray.init(address=cfg.ray_address)
-    elif started:
-        ray.init(num_cpus=cfg.jobs * cfg.threads, include_dashboard=False)
-    try:
+    init_config = {"address": cfg.ray_address} if cfg.ray_address else {"num_cpus": cfg.jobs * cfg.threads, "include_dashboard": False}
+    with ray_runtime("launcher=ray", init_config) as ray:
         remote = ray.remote(num_cpus=cfg.threads)(run_one)
         return ray.get([remote.remote(cfg, *run) for run in runs])
-    finally:
-        if started:
-            ray.shutdown()
 
 
 def main(argv: list[str]) -> None:

@@ -7,7 +7,8 @@ import os
 import subprocess
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import BinaryIO
 
@@ -100,3 +101,18 @@ def import_ray(what: str):
     except ImportError as error:
         raise ImportError(f'{what} needs Ray: pip install "torchrl_dalir[ray]"') from error
     return ray
+
+
+@contextmanager
+def ray_runtime(what: str, init_config: dict | None = None) -> Iterator:
+    """The ``ray`` module, with a runtime: the caller's if Ray is already initialized, else one started with
+    ``ray.init(**init_config)`` and shut down on exit (``what`` needs it; see :func:`import_ray`)."""
+    ray = import_ray(what)
+    started = not ray.is_initialized()
+    if started:
+        ray.init(**(init_config or {}))
+    try:
+        yield ray
+    finally:
+        if started:
+            ray.shutdown()

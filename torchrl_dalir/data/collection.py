@@ -22,6 +22,7 @@ import sys
 import time
 import warnings
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -40,7 +41,7 @@ from torchrl_dalir.data.storage import DatasetMeta, DatasetWriter, TrajectoryDat
 from torchrl_dalir.envs import TaskSpec, action_bounds, get_task, make_env
 from torchrl_dalir.experts import DriftNoise, make_expert
 from torchrl_dalir.seeds import check_data_seed
-from torchrl_dalir.utils import import_ray
+from torchrl_dalir.utils import ray_runtime
 
 SEEDS_PER_DATASET = 1_000_000  # chunk c of dataset seed s resets its episodes with s * 1e6 + c * 1e3 + attempt
 SEEDS_PER_CHUNK = 1_000  # hence at most this many attempts per chunk
@@ -247,11 +248,9 @@ def collect(
     total = sum(s.num_trajectories for s in sources)
     cfg = dict(num_workers=num_workers, num_points=num_points, noise_correlation=noise_correlation, gamma=gamma,
                successes_only=successes_only, backend=backend, ray_init_config=ray_init_config)
-    ray = import_ray('backend="ray"') if backend == "ray" and todo else None
-    started_ray = ray is not None and not ray.is_initialized()
-    if started_ray:  # one Ray runtime for every chunk (each chunk's collector would start and stop its own)
-        ray.init(**(ray_init_config or {}))
-    try:
+    # one Ray runtime for every chunk (each chunk's collector would start and stop its own)
+    runtime = ray_runtime('backend="ray"', ray_init_config) if backend == "ray" and todo else nullcontext()
+    with runtime as ray:
         if ray is not None:
             _check_ray_cpus(ray, num_workers)
         with tqdm(total=total, initial=writer.meta.num_trajectories, desc=f"collect {spec.name}", unit="traj", disable=not progress) as bar:
@@ -260,9 +259,6 @@ def collect(
                 cfg["max_failures"] = max_failures if max_failures is not None else 10 * count
                 rows, info = _collect_chunk(spec, sources[source_index], source_index, count, chunk_seed, cfg, bar)
                 writer.write_chunk(chunk, rows, source=sources[source_index].name, seed=chunk_seed, **info)
-    finally:
-        if started_ray:
-            ray.shutdown()
     return writer.finalize()
 
 
@@ -286,21 +282,22 @@ def _collect_chunk(spec, source, source_index, count, chunk_seed, cfg, bar):
             for batch in collector:
                 finished.update(split_episodes(pieces, batch))
                 while chunk_seed + attempt in finished and len(kept) < count:
-                    trajectory = newest_frame(finished.pop(chunk_seed + attempt))
+                    episode_seed = chunk_seed + attempt
+                    attempt += 1
+                    trajectory = newest_frame(finished.pop(episode_seed))
                     trajectory[keys.ACTION] = trajectory[keys.ACTION].clamp(low, high)  # what the simulator executed
                     steps += len(trajectory)
                     rows = trajectory_rows(
                         trajectory, trajectory_id=len(kept), source=source_index, noise_scale=source.noise_scale,
                         expert_source=source.expert and source.noise_scale == 0, gamma=cfg["gamma"],
                     )
-                    attempt += 1
                     if cfg["successes_only"] and rows[keys.TERMINAL_LABEL][0] < 1:
                         failures += 1
                         if failures > cfg["max_failures"]:
                             raise RuntimeError(f"{failures} failed attempts while collecting {count} successes from {source.name!r}")
                         continue
                     kept.append(rows)
-                    reset_seeds.append(chunk_seed + attempt - 1)
+                    reset_seeds.append(episode_seed)
                     bar.update(1)
                 if len(kept) == count:
                     break
