@@ -1,12 +1,15 @@
 """Milliseconds per decision of the base policies alone and with DALI-R (the paper's Table 5).
 
     python examples/benchmark_latency.py preset=cpu candidates=[1,4,8,16,32]
+    python examples/benchmark_latency.py kinds=[fm] candidates=[32] precisions=[fp32,bf16]   # bf16 autocast at inference
 
 Builds FM and DP policies and a latent world model and scorer with the ``preset``'s
 architectures (untrained: latency does not depend on the weights), then times full decisions
 on one observation of ``num_points`` points: median of ``repeats`` decisions after ``warmup``,
 all in one process. The table gives each time and its ratio to the base policy alone (the
 issue's goals: FM + DALI-R at 32 candidates at most 3x FM, DP + DALI-R at most 2x DP).
+``precisions=[fp32,bf16]`` times every decision under each precision (bf16: autocast, as
+training's ``precision=bf16``), one row per backbone and precision.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.evaluation.timing import median_ms
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.training import POLICY_PRESETS, WORLD_MODEL_PRESETS, WorldModelTrainingConfig
+from torchrl_dalir.training.precision import autocast_dtype
 from torchrl_dalir.utils import atomic_write
 
 
@@ -32,6 +36,7 @@ class Config:
     kinds: list[str] = field(default_factory=lambda: ["fm", "dp"])
     euler_steps: int = 1  # of the FM policy (DP keeps the preset's DDIM steps)
     candidates: list[int] = field(default_factory=lambda: [1, 4, 8, 16, 32])
+    precisions: list[str] = field(default_factory=lambda: ["fp32"])  # fp32 | bf16 (autocast) | auto
     num_points: int = 512
     action_dim: int = 4
     state_dim: int = 4
@@ -56,14 +61,18 @@ def main(argv: list[str]) -> None:
         encoder = LatentEncoder.from_policy(policy)
         world_model = LatentWorldModel(encoder.latent_dim, cfg.action_dim, policy_cfg.action_steps, wm.wm_hidden, wm.wm_layers, wm.wm_heads)
         scorer = TaskCompletionScorer(encoder.latent_dim, wm.scorer_hidden)
-        base_ms = median_ms(lambda: policy(obs.clone()), cfg.warmup, cfg.repeats)
-        row = {"kind": kind, "steps": policy_cfg.euler_steps if kind == "fm" else policy_cfg.ddim_steps, "base_policy_ms": round(base_ms, 2)}
-        for n in cfg.candidates:
-            actor = RerankingActor(policy, encoder, world_model, scorer, num_candidates=n)
-            row[f"dalir_{n}_ms"] = round(median_ms(lambda: actor(obs.clone()), cfg.warmup, cfg.repeats), 2)
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-    header = "| N_cand | " + " | ".join(f"{r['kind'].upper()} + DALI-R ms (x base)" for r in rows) + " |"
+        for precision in cfg.precisions:
+            dtype = autocast_dtype(precision, "cpu")
+            with torch.autocast("cpu", dtype=dtype or torch.bfloat16, enabled=dtype is not None):
+                base_ms = median_ms(lambda: policy(obs.clone()), cfg.warmup, cfg.repeats)
+                row = {"kind": kind, "precision": precision, "steps": policy_cfg.euler_steps if kind == "fm" else policy_cfg.ddim_steps,
+                       "base_policy_ms": round(base_ms, 2)}
+                for n in cfg.candidates:
+                    actor = RerankingActor(policy, encoder, world_model, scorer, num_candidates=n)
+                    row[f"dalir_{n}_ms"] = round(median_ms(lambda: actor(obs.clone()), cfg.warmup, cfg.repeats), 2)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    header = "| N_cand | " + " | ".join(f"{r['kind'].upper()} ({r['precision']}) + DALI-R ms (x base)" for r in rows) + " |"
     lines = [header, "|" + " --- |" * (len(rows) + 1), "| base policy | " + " | ".join(f"{r['base_policy_ms']:.1f} (1.00)" for r in rows) + " |"]
     for n in cfg.candidates:
         lines.append(f"| {n} | " + " | ".join(f"{r[f'dalir_{n}_ms']:.1f} ({r[f'dalir_{n}_ms'] / r['base_policy_ms']:.2f})" for r in rows) + " |")

@@ -2,17 +2,23 @@
 
     python examples/summarize_results.py out=outputs/pipeline
     python examples/summarize_results.py out=outputs/pipeline trusted_json=docs/results/trusted_selection.json
+    python examples/summarize_results.py out=outputs/pipeline save_records=docs/results/runs    # keep the runs' records
+    python examples/summarize_results.py out=outputs/tables records=[docs/results/runs] variant=frozen+explore
 
-Reads every ``<out>/results/<task>/<policy>_seed<seed><variant>/results.json`` and writes
-``<out>/summary.md``, ``<out>/summary.json`` and ``<out>/summary_<policy>.png``: per task, backbone and
-world-model variant (``paper``, or what the run changed, e.g. ``frozen+explore``),
-base-policy and DALI-R success as mean +- std over seeds (population std), the difference, and
-an episode-paired sign test over all seeds' episodes (how many episodes only one method solved).
+Reads every run of the main job under ``out`` (``<out>/results/<task>/<run>/results.json`` and its
+calibration) and the committed run records under ``records`` (:mod:`torchrl_dalir.pipeline.records`:
+one small JSON per run, which adds up across sessions and machines; ``save_records`` writes the
+runs under ``out`` as such records), and writes ``<out>/summary.md``, ``<out>/summary.json`` and
+``<out>/summary_<policy>.png``: per task, backbone and world-model variant (``paper``, or what the
+run changed, e.g. ``frozen+explore``), base-policy and DALI-R success as mean +- std over seeds
+(population std), the difference, and an episode-paired sign test over all seeds' episodes (how
+many episodes only one method solved).
 
 Where the runs also evaluated DALI-R with the paper's arg-max and the random-candidate control
 (the main job's default ``eval_methods``), it writes the trusted-selection table too
 (``<out>/trusted_selection.md``, ``.json`` and ``trusted_selection_<policy>.png``): base, the
-calibrated default rule, arg-max and random per task, the default's gain and its sign test.
+calibrated default rule, arg-max and random per task (``tasks`` restricts it), the default's gain
+and its sign test.
 """
 
 from __future__ import annotations
@@ -20,59 +26,67 @@ from __future__ import annotations
 import json
 import sys
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import mean, pstdev
 
 from torchrl_dalir.config import parse_config
-from torchrl_dalir.evaluation.compare import METHODS, paired_sign_test
+from torchrl_dalir.evaluation.compare import METHODS, sign_test
 from torchrl_dalir.evaluation.paper import TABLE1, TABLE1_TASKS
 from torchrl_dalir.evaluation.plots import plot_success_by_task
+from torchrl_dalir.pipeline.records import (
+    PAPER,
+    discordant,
+    load_records,
+    merge_records,
+    records_from_runs,
+    save_records,
+)
 from torchrl_dalir.utils import atomic_write
 
-PAPER = "paper"  # the paper's world model and data (no variant)
 TRUSTED = (("base", "base policy"), ("dalir", "DALI-R, calibrated rule"), ("argmax", "DALI-R, arg-max (paper)"), ("random", "random candidate"))
 
 
 @dataclass
 class Config:
     out: str = "outputs/pipeline"
+    records: list[str] = field(default_factory=list)  # folders of committed run records, e.g. [docs/results/runs]
+    save_records: str | None = None  # write a record of every run under out here (e.g. docs/results/runs)
+    run_commit: str | None = None  # the commit that made the runs under out, for results that do not name it
     trusted_json: str | None = None  # also write the trusted-selection data here (e.g. docs/results/trusted_selection.json)
     variant: str = PAPER  # the world-model variant of the trusted-selection table and Table 1 (e.g. frozen+explore)
+    tasks: list[str] = field(default_factory=list)  # the trusted-selection table's tasks (all if empty)
     table1_json: str | None = None  # also build the paper's Table 1 and write its data here (e.g. docs/results/table1.json)
 
 
-def variant_label(run_name: str, policy: str, seed: int) -> str:
-    """The world-model variant of a run folder ``<policy>_seed<seed><variant>``, with the seed
-    taken out of the datasets it names (``fm_seed0_frozen+explore_fm_seed0`` -> ``frozen+explore``),
-    so that the seeds of one variant group together; ``paper`` for none."""
-    own = f"_{policy}_seed{seed}"
-    return run_name.removeprefix(own[1:]).replace(own, "").lstrip("_") or PAPER
-
-
-def gather(root: Path) -> list[dict]:
+def gather(records: list[dict]) -> list[dict]:
     """One row per (task, policy, world-model variant): per method (short name) the per-seed success
-    rates and every seed's per-episode successes; the run folder and DALI-R rule of each seed; and
-    the sign test of DALI-R against the base policy."""
-    groups = defaultdict(lambda: {"seeds": [], "runs": [], "episodes": set(), "rules": [], "episode_success": defaultdict(list),
-                                  **{m: [] for m in METHODS}})
-    for path in sorted(root.glob("results/*/*/results.json")):
-        result = json.loads(path.read_text())
-        if not {METHODS["base"], METHODS["dalir"]} <= set(result["success"]):
-            continue  # a run of some methods only (Table 3's variants: the arg-max alone) has its own table
-        cfg = result["config"]
-        run = path.parent.name
-        group = groups[(cfg["task"], cfg["policy"], variant_label(run, cfg["policy"], cfg["seed"]))]
-        group["seeds"].append(cfg["seed"])
-        group["runs"].append(run)
-        group["episodes"].add(cfg["eval_episodes"])
-        group["rules"].append(result["success"]["DALI-R"].get("selection", "argmax(state)"))
-        for short, name in METHODS.items():
-            if name in result["success"]:
-                group[short].append(result["success"][name]["success_rate"])
-                group["episode_success"][short].extend(r["success"] for r in result["success"][name]["records"])
-    return [{"task": t, "policy": p, "variant": v, **g, "episodes": sorted(g["episodes"]), "episode_success": dict(g["episode_success"]),
-             **paired_sign_test(g["episode_success"]["base"], g["episode_success"]["dalir"])} for (t, p, v), g in groups.items()]
+    rates and the test episodes only the base policy / only that method solved, summed over seeds
+    (``discordant``); each seed's run, DALI-R rule and calibration on validation episodes; and the
+    sign test of DALI-R against the base policy."""
+    groups = defaultdict(lambda: {"seeds": [], "runs": [], "episodes": set(), "rules": [], "validation": {},
+                                  "discordant": defaultdict(lambda: [0, 0]), **{m: [] for m in METHODS}})
+    for record in sorted(records, key=lambda r: (r["task"], r["policy"], r["variant"], r["seed"])):
+        group = groups[(record["task"], record["policy"], record["variant"])]
+        group["seeds"].append(record["seed"])
+        group["runs"].append(record["run"])
+        group["episodes"].add(record["episodes"])
+        group["rules"].append(record["methods"]["dalir"].get("selection", "argmax(state)"))
+        if "validation" in record:
+            group["validation"][str(record["seed"])] = validation_rates(record["validation"])
+        for short, row in record["methods"].items():
+            group[short].append(row["success_rate"])
+            if short != "base":
+                counts = group["discordant"][short]
+                counts[0], counts[1] = (a + b for a, b in zip(counts, discordant(record, short)))
+    return [{"task": t, "policy": p, "variant": v, **g, "episodes": sorted(g["episodes"]), "discordant": dict(g["discordant"]),
+             **sign_test(*g["discordant"]["dalir"])} for (t, p, v), g in groups.items()]
+
+
+def validation_rates(validation: dict) -> dict:
+    """A seed's calibration on validation episodes: base and every grid entry's success (%)."""
+    return {"episodes": validation["episodes"], "seed": validation["seed"], "base": round(100 * validation["base"], 1),
+            **{name: round(100 * e["success_rate"], 1) for name, e in validation["entries"].items()}}
 
 
 def pct(values) -> str:
@@ -91,7 +105,7 @@ def summary_table(table: list[dict]) -> str:
     for policy, variant in sorted({(row["policy"], row["variant"]) for row in table}):
         rows = [row for row in table if (row["policy"], row["variant"]) == (policy, variant)]
         if len(rows) > 1:  # the mean of the per-task differences; every task's episodes pooled for the test
-            test = paired_sign_test(*(sum((row["episode_success"][m] for row in rows), []) for m in ("base", "dalir")))
+            test = sign_test(*(sum(row["discordant"]["dalir"][i] for row in rows) for i in (0, 1)))
             difference = mean(mean(d - b for b, d in zip(row["base"], row["dalir"])) for row in rows)
             lines.append(f"| all {len(rows)} tasks | {policy} | {variant} | | | | | {100 * difference:+.1f} | "
                          f"{test['base_only']} / {test['dalir_only']} | {test['p_value']:.2f} |")
@@ -104,40 +118,33 @@ def trusted_rows(table: list[dict], policy: str, variant: str) -> list[dict]:
             and all(len(row[m]) == len(row["seeds"]) for m, _ in TRUSTED)]
 
 
-def validation_rates(root: Path, task: str, seeds: list[int], runs: list[str]) -> dict:
-    """Each seed's calibration on validation episodes: base and every grid entry's success (%)."""
-    out = {}
-    for seed, run in zip(seeds, runs):
-        path = root / "calibration" / task / run / "calibration.json"
-        record = json.loads(path.read_text()) if path.exists() else None
-        if record and record.get("entries"):
-            out[str(seed)] = {"episodes": record["episodes"], "seed": record["seed"], "base": round(100 * record["base_success_rate"], 1),
-                              **{e["name"]: round(100 * e["success_rate"], 1) for e in record["entries"]}}
-    return out
-
-
-def trusted_selection(table: list[dict], root: Path, variant: str = PAPER) -> dict:
-    """The trusted-selection data of world-model ``variant``: per backbone (``fm`` at the top
-    level, others under their name) and task, the mean success (%) of every method, seeds, episodes per seed and the default's
-    sign test against the base policy; the default rule (the rule family that calibration chose
-    from, with each seed's setting under ``rules``) and the mean gain over the tasks."""
+def trusted_selection(table: list[dict], variant: str = PAPER, tasks: list[str] | None = None) -> dict:
+    """The trusted-selection data of world-model ``variant`` on ``tasks`` (all if empty): per
+    backbone (``fm`` at the top level, others under their name) and task, the mean success (%) of
+    every method, seeds, episodes per seed, the default's sign test against the base policy
+    (``p_default_vs_base``, ``only_base``, ``only_default``) and the arg-max's and the random pick's
+    (``argmax_vs_base``, ``random_vs_base``), each seed's rule and validation results; the default
+    rule (the rule families that calibration chose from) and the mean gain over the tasks of the
+    default, the arg-max and the random pick."""
     out = {}
     for policy in sorted({row["policy"] for row in table}):
-        rows = trusted_rows(table, policy, variant)
+        rows = [row for row in trusted_rows(table, policy, variant) if not tasks or row["task"] in tasks]
         if not rows:
             continue
-        tasks = {row["task"]: {"base": 100 * mean(row["base"]), "default": 100 * mean(row["dalir"]), "argmax": 100 * mean(row["argmax"]),
+        per_task = {row["task"]: {"base": 100 * mean(row["base"]), "default": 100 * mean(row["dalir"]), "argmax": 100 * mean(row["argmax"]),
                                "random": 100 * mean(row["random"]), "seeds": len(row["seeds"]),
                                "episodes": row["episodes"][0] if len(row["episodes"]) == 1 else row["episodes"],
                                "p_default_vs_base": row["p_value"], "only_base": row["base_only"], "only_default": row["dalir_only"],
+                               **{f"{m}_vs_base": sign_test(*row["discordant"][m]) for m in ("argmax", "random")},
                                "rules": dict(zip(map(str, row["seeds"]), row["rules"])),
-                               "validation": validation_rates(root, row["task"], row["seeds"], row["runs"])} for row in rows}
-        families = sorted({rule.split("(")[0] for t in tasks.values() for rule in t["rules"].values()})
+                               "validation": row["validation"]} for row in rows}
+        families = sorted({rule.split("(")[0] for t in per_task.values() for rule in t["rules"].values()})
         block = {"variant": variant, "tasks": {task: {k: round(v, 4 if k.startswith("p_") else 1) if isinstance(v, float) else v for k, v in t.items()}
-                           for task, t in tasks.items()},
+                           for task, t in per_task.items()},
                  "default_rule": " / ".join(families),
-                 "mean_gain": round(mean(t["default"] - t["base"] for t in tasks.values()), 1),
-                 "mean_gain_argmax": round(mean(t["argmax"] - t["base"] for t in tasks.values()), 1)}
+                 "mean_gain": round(mean(t["default"] - t["base"] for t in per_task.values()), 1),
+                 "mean_gain_argmax": round(mean(t["argmax"] - t["base"] for t in per_task.values()), 1),
+                 "mean_gain_random": round(mean(t["random"] - t["base"] for t in per_task.values()), 1)}
         if policy == "fm":
             out.update(block)
         else:
@@ -146,15 +153,19 @@ def trusted_selection(table: list[dict], root: Path, variant: str = PAPER) -> di
 
 
 def trusted_table(data: dict) -> str:
-    lines = ["| backbone | task | seeds x episodes | base (%) | default rule (%) | arg-max (%) | random (%) | only base / only default | p |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| backbone | task | seeds x episodes | base (%) | default rule (%) | only base / only default | p | arg-max (%) | only base / only arg-max "
+             "| random (%) | only base / only random |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for policy, block in [("fm", data), *((k, v) for k, v in data.items() if isinstance(v, dict) and "tasks" in v)]:
         if "tasks" not in block:
             continue
         for task, t in block["tasks"].items():
-            lines.append(f"| {policy} | {task} | {t['seeds']} x {t['episodes']} | {t['base']:.1f} | {t['default']:.1f} | {t['argmax']:.1f} | "
-                         f"{t['random']:.1f} | {t['only_base']} / {t['only_default']} | {t['p_default_vs_base']:.3f} |")
-        lines.append(f"| {policy} | mean gain over base (points) | | | {block['mean_gain']:+.1f} | {block['mean_gain_argmax']:+.1f} | | | |")
+            pair = {m: f"{t[f'{m}_vs_base']['base_only']} / {t[f'{m}_vs_base']['dalir_only']} (p = {t[f'{m}_vs_base']['p_value']:.2f})"
+                    for m in ("argmax", "random")}
+            lines.append(f"| {policy} | {task} | {t['seeds']} x {t['episodes']} | {t['base']:.1f} | {t['default']:.1f} | "
+                         f"{t['only_base']} / {t['only_default']} | {t['p_default_vs_base']:.3f} | {t['argmax']:.1f} | {pair['argmax']} | "
+                         f"{t['random']:.1f} | {pair['random']} |")
+        lines.append(f"| {policy} | mean gain over base (points) | | | {block['mean_gain']:+.1f} | | | {block['mean_gain_argmax']:+.1f} | | "
+                     f"{block['mean_gain_random']:+.1f} | |")
     return "\n".join(lines) + "\n"
 
 
@@ -195,9 +206,13 @@ def table1_markdown(data: dict) -> str:
 def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
     root = Path(cfg.out)
-    table = gather(root)
+    runs = records_from_runs(root, cfg.run_commit)
+    if cfg.save_records:
+        for path in save_records(runs, cfg.save_records):
+            print(f"record: {path}")
+    table = gather(merge_records(runs, load_records(cfg.records)))
     if not table:
-        raise FileNotFoundError(f"no results under {root / 'results'}; run examples/train_dp3_wm.py first")
+        raise FileNotFoundError(f"no results under {root / 'results'} nor records under {cfg.records}; run examples/train_dp3_wm.py first")
     text = summary_table(table)
     print(text)
     atomic_write(root / "summary.md", text)
@@ -206,7 +221,7 @@ def main(argv: list[str]) -> None:
         rows = [row for row in table if row["policy"] == policy and row["variant"] == cfg.variant]
         if rows:
             plot_success_by_task(rows, root / f"summary_{policy}.png", title=f"DALI-R on a frozen {policy.upper()} policy")
-    trusted = trusted_selection(table, root, cfg.variant)
+    trusted = trusted_selection(table, cfg.variant, cfg.tasks)
     if trusted:
         text = trusted_table(trusted)
         print(text)
@@ -214,13 +229,13 @@ def main(argv: list[str]) -> None:
         for path in [root / "trusted_selection.json", *([Path(cfg.trusted_json)] if cfg.trusted_json else [])]:
             atomic_write(path, json.dumps(trusted, indent=1) + "\n")
         for policy in sorted({row["policy"] for row in table}):
-            rows = trusted_rows(table, policy, cfg.variant)
+            rows = [row for row in trusted_rows(table, policy, cfg.variant) if not cfg.tasks or row["task"] in cfg.tasks]
             if rows:
                 plot_success_by_task(rows, root / f"trusted_selection_{policy}.png", title=f"Selection rules on a frozen {policy.upper()} policy", methods=TRUSTED)
     if cfg.table1_json:
         data = table1(table, cfg.variant)
         if not data:
-            raise FileNotFoundError(f"no runs of variant {cfg.variant!r} on the paper's tasks {TABLE1_TASKS} under {root / 'results'}")
+            raise FileNotFoundError(f"no runs of variant {cfg.variant!r} on the paper's tasks {TABLE1_TASKS}")
         text = table1_markdown(data)
         print(text)
         atomic_write(root / "table1.md", text)

@@ -84,10 +84,13 @@ def test_summarize_results_groups_seeds_by_world_model_variant(tmp_path, monkeyp
     import sys
     from pathlib import Path
 
+    from torchrl_dalir.config import config_dict, parse_config
+    from torchrl_dalir.pipeline import PRESETS, PipelineConfig
+
     def run(folder, seed, base, dalir):
         path = tmp_path / "results" / "stick-pull" / folder
         path.mkdir(parents=True)
-        cfg = {"task": "stick-pull", "policy": "fm", "seed": seed, "eval_episodes": 4, "world_model": {}}
+        cfg = config_dict(parse_config(PipelineConfig, ["task=stick-pull", f"seed={seed}", "eval_episodes=4", f"out={tmp_path}"], PRESETS))
         methods = {"base policy": base, "DALI-R": dalir, "DALI-R argmax": base, "random candidate": base}
         success = {m: {"success_rate": sum(s) / 4, "selection": "margin(ensemble, k=1, margin=1)", "records": [{"success": x} for x in s]}
                    for m, s in methods.items()}
@@ -111,3 +114,51 @@ def test_summarize_results_groups_seeds_by_world_model_variant(tmp_path, monkeyp
                                             "rules": ["margin(ensemble, k=1, margin=1)"], "paper_base": 48.7, "paper_dalir": 50.7}}}
     assert "| fm | stick-pull | 2 x 4 | 0.0 +- 0.0 | 62.5 +- 37.5 | +62.5 | 0.062 |" in (tmp_path / "table1.md").read_text()
     assert (tmp_path / "table1_fm.png").stat().st_size > 0
+
+
+def test_summarize_results_adds_committed_records_to_the_runs_and_pools_their_discordant_episodes(tmp_path, monkeypatch):
+    import json
+    import runpy
+    import sys
+    from pathlib import Path
+
+    def record(seed, methods, **extra):
+        return {"version": 1, "task": "pick-place-wall", "policy": "fm", "seed": seed, "variant": "frozen+explore", "run": f"run{seed}",
+                "eval_seed": 0, "episodes": 4, "num_candidates": 32, "command": "", "commit": None, "methods": methods, **extra}
+
+    full = record(0, {"base": {"success_rate": 0.5, "outcomes": "1100"}, "dalir": {"success_rate": 0.75, "outcomes": "1011", "selection": "argmax(state)"},
+                      "argmax": {"success_rate": 0.75, "outcomes": "1011"}, "random": {"success_rate": 0.25, "outcomes": "0001"}})
+    # a run summarised before records existed: its discordant counts instead of its episodes
+    counts = record(1, {"base": {"success_rate": 0.5}, "dalir": {"success_rate": 0.5, "base_only": 0, "method_only": 0, "selection": "margin(ensemble, k=1, margin=1)"},
+                        "argmax": {"success_rate": 0.25, "base_only": 2, "method_only": 1}, "random": {"success_rate": 0.5, "base_only": 1, "method_only": 1}},
+                    validation={"episodes": 30, "seed": 1, "alpha": 0.1, "base": 0.5, "chosen": "margin(ensemble, k=1, margin=1)",
+                                "entries": {"margin(ensemble, k=1, margin=1)": {"success_rate": 0.5, "base_only": 0, "method_only": 0}}})
+    folder = tmp_path / "runs"
+    from torchrl_dalir.pipeline.records import load_records, save_records
+
+    save_records([full, counts], folder)
+    assert load_records([folder]) == [full, counts]
+    with pytest.raises(ValueError, match="another run"):  # two different runs of one seed
+        save_records([{**full, "methods": counts["methods"]}], folder)
+    script = Path(__file__).resolve().parents[1] / "examples" / "summarize_results.py"
+    monkeypatch.setattr(sys, "argv", ["x", f"out={tmp_path / 'tables'}", f"records=[{folder}]", "variant=frozen+explore"])
+    runpy.run_path(str(script), run_name="__main__")
+    row = json.loads((tmp_path / "tables" / "summary.json").read_text())[0]
+    # seed 0: base 1100 vs DALI-R 1011 -> 1 / 2; seed 1: 0 / 0; arg-max 1 / 2 + 2 / 1; random 2 / 1 + 1 / 1
+    assert row["discordant"] == {"dalir": [1, 2], "argmax": [3, 3], "random": [3, 2]}
+    assert (row["base_only"], row["dalir_only"], row["p_value"]) == (1, 2, 1.0)
+    trusted = json.loads((tmp_path / "tables" / "trusted_selection.json").read_text())["tasks"]["pick-place-wall"]
+    assert (trusted["base"], trusted["default"], trusted["argmax"], trusted["random"]) == (50.0, 62.5, 50.0, 37.5)
+    assert trusted["validation"] == {"1": {"episodes": 30, "seed": 1, "base": 50.0, "margin(ensemble, k=1, margin=1)": 50.0}}
+    summarize = runpy.run_path(str(script))
+    dp = {**full, "policy": "dp", "task": "stick-pull"}
+    table = summarize["gather"]([full, counts, dp])
+    both = summarize["trusted_selection"](table, "frozen+explore")  # FM at the top level, DP under its name
+    assert list(both["tasks"]) == ["pick-place-wall"] and list(both["dp"]["tasks"]) == ["stick-pull"]
+    assert summarize["trusted_selection"](table, "frozen+explore", tasks=["pick-place-wall"])["tasks"] == both["tasks"]
+    assert "dp" not in summarize["trusted_selection"](table, "frozen+explore", tasks=["pick-place-wall"])
+    # a record whose counts contradict its success rates, or outcomes of another length, is refused
+    with pytest.raises(ValueError, match="do not add up"):
+        save_records([{**counts, "seed": 2, "methods": {**counts["methods"], "random": {"success_rate": 0.5, "base_only": 2, "method_only": 1}}}], folder)
+    with pytest.raises(ValueError, match="4 characters"):
+        save_records([{**full, "seed": 3, "methods": {**full["methods"], "random": {"success_rate": 0.25, "outcomes": "00001"}}}], folder)

@@ -59,7 +59,22 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     assert (diagnosis / "candidate_outcomes.png").stat().st_size > 0
     with pytest.raises(FileNotFoundError, match="no policy checkpoint at"):
         run_example("diagnose_reranking.py", [f"policy_checkpoint={tmp_path / 'missing.pt'}", f"world_model={world_model_path}"], monkeypatch)
-    run_example("summarize_results.py", [f"out={tmp_path}"], monkeypatch)  # the sweep's summary, again
+    records = tmp_path / "records"  # the sweep's summary, again, keeping the run's record
+    run_example("summarize_results.py", [f"out={tmp_path}", f"save_records={records}"], monkeypatch)
+    record = json.loads((records / "paper" / "reach" / f"{policy}_seed0.json").read_text())
+    assert record["methods"]["dalir"]["outcomes"] == "".join("1" if r["success"] else "0" for r in data["success"]["DALI-R"]["records"])
+    assert record["validation"]["chosen"] == calibration["chosen"] and record["commit"] == data["commit"]
+    # the record's command, run in another folder, is this run's configuration
+    from torchrl_dalir.config import config_dict, parse_config
+    from torchrl_dalir.pipeline import PRESETS, PipelineConfig
+
+    assert record["command"] == f"python examples/train_dp3_wm.py task=reach seed=0 policy={policy} preset=smoke " + " ".join(quiet)
+    again = parse_config(PipelineConfig, [*record["command"].split()[2:], f"out={tmp_path}"], PRESETS)
+    assert json.loads(json.dumps(config_dict(again))) == data["config"]  # (JSON holds tuples as lists)
+    # the record alone (the run folder gone) gives the same summary
+    alone = tmp_path / "from_records"
+    run_example("summarize_results.py", [f"out={alone}", f"records=[{records}]"], monkeypatch)
+    assert json.loads((alone / "summary.json").read_text()) == json.loads((tmp_path / "summary.json").read_text())
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert [(r["task"], r["policy"], r["seeds"]) for r in summary] == [("reach", policy, [0])]
     assert summary[0]["dalir"] == [data["success"]["DALI-R"]["success_rate"]]

@@ -94,6 +94,18 @@ def run_logged(command: list[str], log: str | Path, threads: int = 1) -> tuple[i
     return code, time.perf_counter() - start
 
 
+def git_commit(folder: str | Path = ".") -> str | None:
+    """The commit checked out where ``folder`` is, with ``+dirty`` if tracked files were changed
+    (``None`` outside a git checkout or without git), to record which code made a result."""
+    try:
+        def git(*args: str) -> str:
+            return subprocess.run(["git", "-C", str(folder), *args], capture_output=True, text=True, check=True).stdout.strip()
+
+        return git("rev-parse", "HEAD") + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
 def import_ray(what: str):
     """The ``ray`` module, or an ``ImportError`` saying how to install it (``what`` needs it)."""
     try:

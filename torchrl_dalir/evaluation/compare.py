@@ -136,8 +136,11 @@ def paired_sign_test(base: list[bool], dalir: list[bool]) -> dict:
     """
     if len(base) != len(dalir):
         raise ValueError(f"paired results need the same episodes: {len(base)} vs {len(dalir)}")
-    base_only = sum(b and not d for b, d in zip(base, dalir))
-    dalir_only = sum(d and not b for b, d in zip(base, dalir))
+    return sign_test(sum(b and not d for b, d in zip(base, dalir)), sum(d and not b for b, d in zip(base, dalir)))
+
+
+def sign_test(base_only: int, dalir_only: int) -> dict:
+    """:func:`paired_sign_test` from the discordant counts alone (e.g. summed over seeds)."""
     n = base_only + dalir_only
     p = float(binomtest(dalir_only, n).pvalue) if n else 1.0
     return {"base_only": base_only, "dalir_only": dalir_only, "p_value": p}

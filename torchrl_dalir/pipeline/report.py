@@ -20,7 +20,7 @@ from torchrl_dalir.evaluation.compare import (
 from torchrl_dalir.evaluation.diagnostics import imagination_curves
 from torchrl_dalir.evaluation.plots import plot_imagination_diagnostics
 from torchrl_dalir.pipeline.config import PipelineConfig
-from torchrl_dalir.utils import atomic_write
+from torchrl_dalir.utils import atomic_write, git_commit
 
 
 def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path: Path) -> None:
@@ -74,4 +74,5 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
     ])
     atomic_write(results / "results.md", table)
     atomic_write(results / "results.json", json.dumps(
-        {"config": config_dict(cfg), "success": rows, "world_model_metrics": metrics, "diagnostics": curves}, indent=1))
+        {"config": config_dict(cfg), "commit": git_commit(Path(__file__).parent), "success": rows, "world_model_metrics": metrics,
+         "diagnostics": curves}, indent=1))

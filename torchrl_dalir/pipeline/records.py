@@ -1,0 +1,192 @@
+"""Run records: the outcome of one main-job run in a small JSON file that can be committed.
+
+A run's folder (datasets, checkpoints, ``results.json`` with every episode's details) is large
+and lives outside the repository; a run record keeps what the result tables need: the command
+that made the run, every method's success on each test episode (``"0110..."``), the selection
+rule it used and its calibration on validation episodes. Records written by different sessions
+on different machines add up: ``examples/summarize_results.py records=[docs/results/runs]``
+builds the tables from them, so seeds can be added one run at a time.
+
+A record whose per-episode outcomes were not kept (runs summarised before records existed)
+gives, per method, the discordant counts against the base policy (``base_only``, ``method_only``)
+instead; the sign tests need nothing more.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+from torchrl_dalir.config import config_dict, parse_config
+from torchrl_dalir.evaluation.compare import METHODS, paired_sign_test
+from torchrl_dalir.pipeline.config import PRESETS, PipelineConfig
+from torchrl_dalir.utils import atomic_write
+
+RECORD_VERSION = 1
+PAPER = "paper"  # the variant of a run with the paper's world model and data
+SHORT = {name: short for short, name in METHODS.items()}  # "base policy" -> "base", ...
+# the stages' settings that the main job derives from its own task, seed, device and folder, and its
+# own settings that do not change a run's results: not part of the command
+_DERIVED = {"out", "data", "mixed_name", "policy_checkpoint", "task", "seed", "policy", "device"}
+_NOT_RESULTS = {"out", "preset", "task", "seed", "policy", "redo", "until"}
+
+
+def variant_label(run_name: str, policy: str, seed: int) -> str:
+    """The world-model variant of a run folder ``<policy>_seed<seed><variant>``, with the seed
+    taken out of the datasets it names (``fm_seed0_frozen+explore_fm_seed0`` -> ``frozen+explore``),
+    so that the seeds of one variant group together; ``paper`` for none."""
+    own = f"_{policy}_seed{seed}"
+    return run_name.removeprefix(own[1:]).replace(own, "").lstrip("_") or PAPER
+
+
+def command(config: dict) -> str:
+    """The main-job command line of a run of ``config`` (a ``results.json``'s ``config``): its
+    task, seed, policy and preset, and every setting that differs from the preset. (It sets what
+    the run set: ``precision=auto`` still chooses for the machine it runs on.)"""
+    head = {key: config[key] for key in ("task", "seed", "policy", "preset")}
+    default = config_dict(parse_config(PipelineConfig, [f"{k}={v}" for k, v in {**head, "out": config["out"]}.items()], PRESETS))
+    default = json.loads(json.dumps(default))  # as the run's results.json holds it (tuples become lists)
+    own, base = _flatten(config), _flatten(default)
+    explore = f"explore_{config['policy']}_seed{config['seed']}"
+    if config.get("exploration_rollouts"):  # the exploration data joins the world model's data by itself
+        own["world_model.extra_data"] = [name for name in own.get("world_model.extra_data", []) if name != explore]
+    changed = [f"{key}={_cli(value)}" for key, value in own.items()
+               if key in base and value != base[key]  # (a setting that no longer exists is left out)
+               and (key.rsplit(".", 1)[-1] not in _DERIVED if "." in key else key not in _NOT_RESULTS)]
+    return " ".join(["python examples/train_dp3_wm.py", *(f"{k}={v}" for k, v in head.items()), *changed])
+
+
+def run_record(result: dict, run: str, calibration: dict | None = None, commit: str | None = None) -> dict:
+    """The record of one main-job run from its ``results.json`` (``result``), its folder name
+    ``run`` and its ``calibration.json`` (if it was calibrated). ``commit`` names the code that
+    made the run when ``result`` does not (results written before they named it)."""
+    config = result["config"]
+    methods = {}
+    for name, row in result["success"].items():
+        outcomes = "".join("1" if r["success"] else "0" for r in row["records"])
+        methods[SHORT[name]] = {"success_rate": row["success_rate"], "outcomes": outcomes,
+                                **({"selection": row["selection"]} if "selection" in row else {}), "seconds": row.get("seconds")}
+    record = {
+        "version": RECORD_VERSION, "task": config["task"], "policy": config["policy"], "seed": config["seed"],
+        "variant": variant_label(run, config["policy"], config["seed"]), "run": run,
+        "eval_seed": config["eval_seed"], "episodes": config["eval_episodes"], "num_candidates": config["num_candidates"],
+        "command": command(config), "commit": result.get("commit") or commit, "methods": methods,
+    }
+    if calibration and calibration.get("entries"):
+        record["validation"] = {
+            "episodes": calibration["episodes"], "seed": calibration["seed"], "alpha": calibration.get("alpha"),
+            "base": round(calibration["base_success_rate"], 4), "chosen": calibration["chosen"],
+            "entries": {e["name"]: {"success_rate": round(e["success_rate"], 4), "base_only": e["vs_base"]["base_only"],
+                                    "method_only": e["vs_base"]["dalir_only"]} for e in calibration["entries"]},
+        }
+    return record
+
+
+def discordant(record: dict, method: str) -> tuple[int, int]:
+    """The test episodes that only the base policy / only ``method`` solved in ``record``."""
+    row, base = record["methods"][method], record["methods"]["base"]
+    if "outcomes" in row and "outcomes" in base:
+        test = paired_sign_test([c == "1" for c in base["outcomes"]], [c == "1" for c in row["outcomes"]])
+        return test["base_only"], test["dalir_only"]
+    return row["base_only"], row["method_only"]
+
+
+def check_record(record: dict, where: str = "a run record") -> None:
+    """Refuses a record that cannot be summarised: another version, no base policy, a method with
+    neither its outcomes nor its discordant counts, outcomes of another number of episodes, or
+    counts that do not add up to the success rates."""
+    if record.get("version") != RECORD_VERSION:
+        raise ValueError(f"{where} is not a run record of version {RECORD_VERSION}")
+    methods, episodes = record["methods"], record["episodes"]
+    if "base" not in methods:
+        raise ValueError(f"{where} has no base policy to compare with")
+    for name, row in methods.items():
+        if "outcomes" in row:
+            if len(row["outcomes"]) != episodes or set(row["outcomes"]) - {"0", "1"}:
+                raise ValueError(f"{where}: {name}'s outcomes must be {episodes} characters 0 or 1")
+            if abs(row["outcomes"].count("1") / episodes - row["success_rate"]) > 1e-6:
+                raise ValueError(f"{where}: {name}'s outcomes do not give its success rate {row['success_rate']}")
+        elif name != "base":
+            if not {"base_only", "method_only"} <= set(row):
+                raise ValueError(f"{where}: {name} has neither its outcomes nor its discordant counts (base_only, method_only)")
+            if abs((row["method_only"] - row["base_only"]) / episodes - (row["success_rate"] - methods["base"]["success_rate"])) > 1e-6:
+                raise ValueError(f"{where}: {name}'s discordant counts do not add up to the success rates")
+
+
+def records_from_runs(root: str | Path, commit: str | None = None) -> list[dict]:
+    """A record of every main-job run under ``root`` (``<root>/results/<task>/<run>/results.json``
+    and its calibration); runs of some methods only (Table 3's arg-max-only variants) are left out.
+    ``commit``: see :func:`run_record`."""
+    root = Path(root)
+    records = []
+    for path in sorted(root.glob("results/*/*/results.json")):
+        result = json.loads(path.read_text())
+        if not {METHODS["base"], METHODS["dalir"]} <= set(result["success"]):
+            continue
+        task, run = path.parent.parent.name, path.parent.name
+        calibration = root / "calibration" / task / run / "calibration.json"
+        records.append(run_record(result, run, json.loads(calibration.read_text()) if calibration.exists() else None, commit))
+    return records
+
+
+def load_records(folders: list[str | Path]) -> list[dict]:
+    """Every record (``*.json``) under ``folders``, each checked by :func:`check_record`."""
+    records = []
+    for folder in folders:
+        for path in sorted(Path(folder).rglob("*.json")):
+            record = json.loads(path.read_text())
+            check_record(record, str(path))
+            records.append(record)
+    return records
+
+
+def record_path(folder: str | Path, record: dict) -> Path:
+    return Path(folder) / record["variant"] / record["task"] / f"{record['policy']}_seed{record['seed']}.json"
+
+
+def save_records(records: list[dict], folder: str | Path) -> list[Path]:
+    """Writes each record to ``<folder>/<variant>/<task>/<policy>_seed<seed>.json``. A record
+    already there is only replaced by one of the same run (the same outcomes of every method):
+    two runs of one seed are refused, before anything is written."""
+    paths = [record_path(folder, record) for record in records]
+    for path, record in zip(paths, records):
+        check_record(record, f"the record for {path}")
+        if path.exists() and json.loads(path.read_text())["methods"] != record["methods"]:
+            raise ValueError(f"{path} holds another run of {record['task']} {record['policy']} seed {record['seed']}: "
+                             "move it away to replace it")
+    for path, record in zip(paths, records):
+        atomic_write(path, json.dumps(record, indent=1) + "\n")
+    return paths
+
+
+def merge_records(*sources: list[dict]) -> list[dict]:
+    """The records of every source, one per (task, policy, variant, seed); the first source's wins,
+    with a warning where another source holds a different run of the same seed."""
+    merged = {}
+    for records in sources:
+        for record in records:
+            key = (record["task"], record["policy"], record["variant"], record["seed"])
+            kept = merged.setdefault(key, record)
+            if kept["methods"] != record["methods"]:
+                warnings.warn(f"two different runs of {' '.join(map(str, key))}: the one of {kept['run']} (commit {kept['commit']}) is used",
+                              stacklevel=2)
+    return list(merged.values())
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _cli(value) -> str:
+    if isinstance(value, list):
+        return "[" + ",".join(map(_cli, value)) + "]"
+    if value is None:
+        return "null"
+    return str(value).lower() if isinstance(value, bool) else str(value)
