@@ -35,6 +35,7 @@ class Config:
     grid: str = "all"  # the entries evaluated: margin (the default rule's settings) | all (and the other rules)
     rule: str | None = None  # choose only among this rule's settings (default: among every entry of the grid)
     alpha: float = ALPHA  # evidence needed to leave the base policy: one-sided sign-test p-value on the validation episodes (1: the best entry)
+    confirm_episodes: int = 0  # > 0: the chosen entry must win again on this many fresh validation episodes (evaluation seed seed + 1)
     write: bool = True  # store the chosen setting in the world-model checkpoint
     device: str = "cpu"
     num_candidates: int = 32
@@ -54,6 +55,7 @@ def main(argv: list[str]) -> None:
     out = writable_dir(cfg.out if cfg.out else Path(cfg.world_model).parent)  # now, not after the episodes
     record = calibrate(
         cfg.policy_checkpoint, cfg.world_model, grid=GRIDS[cfg.grid], rule=cfg.rule, alpha=cfg.alpha, episodes=cfg.episodes, seed=cfg.seed, test_seed=cfg.test_seed, write=cfg.write,
+        confirm_episodes=cfg.confirm_episodes,
         device=cfg.device, num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed,
         common_noise=cfg.common_noise,
     )
@@ -61,6 +63,11 @@ def main(argv: list[str]) -> None:
     for entry in record["entries"]:
         test = entry["vs_base"]
         print(f"{entry['name']:48s} {entry['success_rate']:7.1%}   only base / only rule {test['base_only']:2d} / {test['dalir_only']:2d}")
+    if "confirmation" in record:
+        c = record["confirmation"]
+        print(f"confirmation of {c['entry']} on {c['episodes']} fresh episodes (evaluation seed {c['seed']}): {c['success_rate']:.1%} against "
+              f"{c['base_success_rate']:.1%}, only base / only rule {c['vs_base']['base_only']} / {c['vs_base']['dalir_only']}: "
+              f"{'confirmed' if c['confirmed'] else 'not confirmed, the most conservative entry is kept'}")
     print(f"chosen: {record['chosen']}" + (f" (written to {cfg.world_model})" if cfg.write else ""))
     atomic_write(out / "calibration.json", json.dumps({"config": config_dict(cfg), **record}, indent=1))
 

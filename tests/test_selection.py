@@ -180,6 +180,41 @@ def test_calibration_leaves_the_base_policy_only_with_evidence():
     assert calibration.choose([entry("m1", 0.5, 0, 0), entry("m0", 0.3, 6, 0)])["name"] == "m1"
 
 
+def test_calibration_keeps_a_chosen_rule_only_if_fresh_validation_episodes_confirm_it(monkeypatch):
+    from types import SimpleNamespace
+
+    from torchrl_dalir.evaluation.compare import BASE, DALIR
+
+    grid = (SelectionConfig("margin", "ensemble", margin=1.0), SelectionConfig("argmax", "ensemble"))
+    outcomes = {  # (evaluation seed, rule) -> successes of 8 episodes; the arg-max wins 4 / 0 on seed 1
+        (1, None): "11000000", (1, "margin"): "11000000", (1, "argmax"): "11111100",
+        (2, None): "10100000", (2, "argmax"): "10100000",  # ... and ties on the fresh seed 2
+        (3, None): "00000000", (3, "argmax"): "11110000",  # ... and wins again on seed 3
+    }
+    calls = []
+
+    def fake_evaluate(policy_path, world_model_path, *, methods, seed, episodes, selection=None, **kwargs):
+        calls.append((seed, episodes, tuple(methods)))
+        names = {"base": (BASE, None), "dalir": (DALIR, selection.rule if selection else None)}
+        return {names[m][0]: {"success_rate": outcomes[seed, names[m][1]].count("1") / 8, "seconds": 0.0,
+                              "records": [{"success": c == "1"} for c in outcomes[seed, names[m][1]]]} for m in methods}
+
+    monkeypatch.setattr(calibration, "evaluate_checkpoints", fake_evaluate)
+    monkeypatch.setattr(calibration, "load_world_model", lambda path: SimpleNamespace(ensemble=object()))
+    plain = calibration.calibrate("p.pt", "w.pt", grid=grid, episodes=8, seed=1, write=False)
+    assert plain["chosen"] == "argmax(ensemble)" and "confirmation" not in plain and {c[0] for c in calls} == {1}
+    calls.clear()
+    tied = calibration.calibrate("p.pt", "w.pt", grid=grid, episodes=8, seed=1, write=False, confirm_episodes=8)
+    assert tied["chosen"] == grid[0].name and tied["confirmation"]["confirmed"] is False  # the base policy is kept
+    assert tied["confirmation"]["vs_base"] == {"base_only": 0, "dalir_only": 0, "p_value": 1.0} and calls[-1] == (2, 8, ("base", "dalir"))
+    again = calibration.calibrate("p.pt", "w.pt", grid=grid, episodes=8, seed=1, write=False, confirm_episodes=8, confirm_seed=3, alpha=0.1)
+    assert again["chosen"] == "argmax(ensemble)" and again["confirmation"]["confirmed"] is True  # 4 / 0: one-sided p = 0.0625
+    with pytest.raises(ValueError, match="must not read the test episodes"):
+        calibration.calibrate("p.pt", "w.pt", grid=grid, seed=1, confirm_episodes=8, confirm_seed=0)
+    with pytest.raises(ValueError, match="fresh validation episodes"):
+        calibration.calibrate("p.pt", "w.pt", grid=grid, seed=1, confirm_episodes=8, confirm_seed=1)
+
+
 def test_a_checkpoint_without_an_ensemble_keeps_the_paper_rule_and_refuses_ensemble_rules(trained_world_model, tmp_path):
     _, wm_path, policy_path = trained_world_model
     state = torch.load(wm_path, weights_only=False)

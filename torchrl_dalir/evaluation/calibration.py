@@ -53,6 +53,8 @@ def calibrate(
     test_seed: int = TEST_SEED,
     write: bool = True,
     alpha: float = ALPHA,
+    confirm_episodes: int = 0,
+    confirm_seed: int | None = None,
     **evaluate_kwargs,
 ) -> dict:
     """Evaluates the base policy and every entry of ``grid`` on ``episodes`` validation episodes
@@ -61,14 +63,24 @@ def calibrate(
     ``calibration``). Returns that record: per entry its name, settings, success rate, the
     paired comparison with the base policy, and the chosen entry.
 
-    Raises ``ValueError`` for the test seed ``test_seed``, for a ``rule`` that no grid entry
-    has, for ``alpha`` outside (0, 1], and for ensemble rules on a world model without a scorer
-    ensemble, before any episode.
+    With ``confirm_episodes > 0`` a chosen entry other than the most conservative one must win
+    again on ``confirm_episodes`` fresh validation episodes (evaluation seed ``confirm_seed``,
+    by default ``seed + 1``), against the base policy with the same one-sided p-value bar;
+    otherwise the most conservative entry is kept. The best of nine entries on the same 30
+    episodes clears a per-entry bar by luck far more often than ``alpha`` (the winner's curse);
+    a second draw does not share that luck. The record's ``confirmation`` says what happened.
+
+    Raises ``ValueError`` for the test seed ``test_seed`` (as ``seed`` or ``confirm_seed``), for a
+    ``rule`` that no grid entry has, for ``alpha`` outside (0, 1], and for ensemble rules on a
+    world model without a scorer ensemble, before any episode.
     """
     if not 0 < alpha <= 1:
         raise ValueError(f"alpha is a p-value threshold in (0, 1], got {alpha}")
-    if seed == test_seed:
+    confirm_seed = seed + 1 if confirm_seed is None else confirm_seed
+    if test_seed in [seed, *([confirm_seed] if confirm_episodes else [])]:
         raise ValueError(f"calibration must not read the test episodes (evaluation seed {test_seed}); use another seed")
+    if confirm_episodes and confirm_seed == seed:
+        raise ValueError(f"the confirmation needs fresh validation episodes: confirm_seed must differ from seed ({seed})")
     if rule is not None and not any(entry.rule == rule for entry in grid):
         raise ValueError(f"no entry of the grid has rule {rule!r}: {[entry.name for entry in grid]}")
     checkpoint = load_world_model(world_model_path)  # fails now, not after the base policy's episodes
@@ -84,8 +96,18 @@ def calibrate(
         entries.append({"name": entry.name, "selection": entry.to_dict(), "success_rate": row["success_rate"],
                         "vs_base": paired_sign_test(base_successes, successes), "seconds": row["seconds"]})
     chosen = choose(entries, rule, alpha)
+    conservative = next(e for e in entries if rule is None or e["selection"]["rule"] == rule)
+    confirmation = None
+    if confirm_episodes and chosen is not conservative:
+        rows = evaluate_checkpoints(policy_path, world_model_path, methods=["base", "dalir"], selection=SelectionConfig(**chosen["selection"]),
+                                    **{**common, "episodes": confirm_episodes, "seed": confirm_seed})
+        vs_base = paired_sign_test(*([r["success"] for r in rows[name]["records"]] for name in (BASE, DALIR)))
+        confirmed = p_better(vs_base["base_only"], vs_base["dalir_only"]) <= alpha
+        confirmation = {"episodes": confirm_episodes, "seed": confirm_seed, "entry": chosen["name"], "base_success_rate": rows[BASE]["success_rate"],
+                        "success_rate": rows[DALIR]["success_rate"], "vs_base": vs_base, "confirmed": confirmed}
+        chosen = chosen if confirmed else conservative
     record = {"episodes": episodes, "seed": seed, "rule": rule, "alpha": alpha, "base_success_rate": base["success_rate"],
-              "entries": entries, "chosen": chosen["name"], "selection": chosen["selection"]}
+              "entries": entries, **({"confirmation": confirmation} if confirmation else {}), "chosen": chosen["name"], "selection": chosen["selection"]}
     if write:
         store_selection(world_model_path, SelectionConfig(**chosen["selection"]), record)
     return record

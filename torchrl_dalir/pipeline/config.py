@@ -48,6 +48,9 @@ class PipelineConfig:
         ``calibration_episodes=0`` keeps the paper's arg-max.
     calibration_alpha: the evidence a setting needs to be chosen over the base policy (one-sided
         sign-test p-value on the validation episodes; 1: the setting with the most successes).
+    calibration_confirm_episodes: with ``n > 0``, a chosen setting other than the base policy must
+        win again on ``n`` fresh validation episodes (evaluation seed ``calibration_seed + 1``)
+        to be kept (:func:`~torchrl_dalir.evaluation.calibration.calibrate`); 0 (the default) skips it.
     num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability.
     redo: stages to run again from scratch even if their artifact exists
         (``redo=[world_model]``); later stages are redone too, and each previous run's
@@ -70,6 +73,7 @@ class PipelineConfig:
     calibration_episodes: int = 30
     calibration_seed: int = 1
     calibration_alpha: float = ALPHA
+    calibration_confirm_episodes: int = 0
     calibration_grid: str = "all"  # all (the margin settings and the other rules) | margin (the margin settings only)
     num_candidates: int = 32
     dropout: float = 0.2
@@ -89,8 +93,11 @@ class PipelineConfig:
             raise ValueError(f"calibration_alpha is a p-value threshold in (0, 1], got {self.calibration_alpha}")
         check_evaluation_settings(self.eval_episodes, self.eval_seed, self.num_candidates, self.dropout, prefix="eval_")
         check_eval_seed(self.calibration_seed, "calibration_seed")
-        for name in ("calibration_episodes", "base_policy_rollouts", "exploration_rollouts", "seed", "demo_seed"):
+        for name in ("calibration_episodes", "calibration_confirm_episodes", "base_policy_rollouts", "exploration_rollouts", "seed", "demo_seed"):
             check_at_least(name, getattr(self, name), 0)
+        if self.calibration_confirm_episodes and self.calibration_seed + 1 == self.eval_seed:
+            raise ValueError(f"the confirmation's validation episodes (evaluation seed calibration_seed + 1 = {self.eval_seed}) "
+                             "would be the test episodes: choose another calibration_seed")
         if self.calibration_seed == self.eval_seed:
             raise ValueError(f"calibration_seed must differ from eval_seed ({self.eval_seed}): the rule is chosen on validation, not test, episodes")
         check_choice("until", self.until, STAGES)

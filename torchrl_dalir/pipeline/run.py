@@ -106,6 +106,7 @@ def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_pat
     the paper's arg-max) and stores it in the world model; the record also goes to ``out``."""
     if cfg.calibration_episodes > 0:
         record = calibrate(policy_path, world_model_path, grid=GRIDS[cfg.calibration_grid], alpha=cfg.calibration_alpha, episodes=cfg.calibration_episodes,
+                           confirm_episodes=cfg.calibration_confirm_episodes,
                            seed=cfg.calibration_seed, test_seed=cfg.eval_seed, device=cfg.device, num_candidates=cfg.num_candidates,
                            dropout=cfg.dropout, actor_seed=cfg.seed)
         print(f"[calibration] chosen on {cfg.calibration_episodes} validation episodes: {record['chosen']}", flush=True)
