@@ -112,9 +112,9 @@ def summary_table(table: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def trusted_rows(table: list[dict], policy: str, variant: str) -> list[dict]:
-    """The rows of ``policy`` and world-model ``variant`` whose every seed evaluated all four methods."""
-    return [row for row in table if row["policy"] == policy and row["variant"] == variant
+def trusted_rows(table: list[dict], policy: str, variant: str, tasks: list[str] | None = None) -> list[dict]:
+    """The rows of ``policy``, world-model ``variant`` and ``tasks`` (all if empty) whose every seed evaluated all four methods."""
+    return [row for row in table if row["policy"] == policy and row["variant"] == variant and (not tasks or row["task"] in tasks)
             and all(len(row[m]) == len(row["seeds"]) for m, _ in TRUSTED)]
 
 
@@ -128,7 +128,7 @@ def trusted_selection(table: list[dict], variant: str = PAPER, tasks: list[str] 
     default, the arg-max and the random pick."""
     out = {}
     for policy in sorted({row["policy"] for row in table}):
-        rows = [row for row in trusted_rows(table, policy, variant) if not tasks or row["task"] in tasks]
+        rows = trusted_rows(table, policy, variant, tasks)
         if not rows:
             continue
         per_task = {row["task"]: {"base": 100 * mean(row["base"]), "default": 100 * mean(row["dalir"]), "argmax": 100 * mean(row["argmax"]),
@@ -229,7 +229,7 @@ def main(argv: list[str]) -> None:
         for path in [root / "trusted_selection.json", *([Path(cfg.trusted_json)] if cfg.trusted_json else [])]:
             atomic_write(path, json.dumps(trusted, indent=1) + "\n")
         for policy in sorted({row["policy"] for row in table}):
-            rows = [row for row in trusted_rows(table, policy, cfg.variant) if not cfg.tasks or row["task"] in cfg.tasks]
+            rows = trusted_rows(table, policy, cfg.variant, cfg.tasks)
             if rows:
                 plot_success_by_task(rows, root / f"trusted_selection_{policy}.png", title=f"Selection rules on a frozen {policy.upper()} policy", methods=TRUSTED)
     if cfg.table1_json:

@@ -97,11 +97,11 @@ def run_logged(command: list[str], log: str | Path, threads: int = 1) -> tuple[i
 def git_commit(folder: str | Path = ".") -> str | None:
     """The commit checked out where ``folder`` is, with ``+dirty`` if tracked files were changed
     (``None`` outside a git checkout or without git), to record which code made a result."""
+    git = ["git", "-C", str(folder)]
     try:
-        def git(*args: str) -> str:
-            return subprocess.run(["git", "-C", str(folder), *args], capture_output=True, text=True, check=True).stdout.strip()
-
-        return git("rev-parse", "HEAD") + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+        head, changed = (subprocess.run(git + args, capture_output=True, text=True, check=True).stdout.strip()
+                         for args in (["rev-parse", "HEAD"], ["status", "--porcelain", "--untracked-files=no"]))
+        return head + ("+dirty" if changed else "")
     except (OSError, subprocess.CalledProcessError):
         return None
 

@@ -96,7 +96,7 @@ def calibrate(
         entries.append({"name": entry.name, "selection": entry.to_dict(), "success_rate": row["success_rate"],
                         "vs_base": paired_sign_test(base_successes, successes), "seconds": row["seconds"]})
     chosen = choose(entries, rule, alpha)
-    conservative = next(e for e in entries if rule is None or e["selection"]["rule"] == rule)
+    conservative = family(entries, rule)[0]
     confirmation = None
     if confirm_episodes and chosen is not conservative:
         rows = evaluate_checkpoints(policy_path, world_model_path, methods=["base", "dalir"], selection=SelectionConfig(**chosen["selection"]),
@@ -118,6 +118,10 @@ def choose(entries: list[dict], rule: str | None = None, alpha: float = ALPHA) -
     conservative first), restricted to those of ``rule`` if given: the most successes among the
     first entry and the entries that beat the base policy with a one-sided sign-test p-value of at
     most ``alpha``; ties go to the entry listed first (``alpha=1``: simply the most successes)."""
-    family = [e for e in entries if rule is None or e["selection"]["rule"] == rule]
-    eligible = [e for i, e in enumerate(family) if i == 0 or p_better(e["vs_base"]["base_only"], e["vs_base"]["dalir_only"]) <= alpha]
+    eligible = [e for i, e in enumerate(family(entries, rule)) if i == 0 or p_better(e["vs_base"]["base_only"], e["vs_base"]["dalir_only"]) <= alpha]
     return max(eligible, key=lambda e: e["success_rate"])  # max keeps the first of equals
+
+
+def family(entries: list[dict], rule: str | None = None) -> list[dict]:
+    """The entries of ``rule`` (all if ``None``), in the grid's order: the first is the most conservative."""
+    return [e for e in entries if rule is None or e["selection"]["rule"] == rule]
