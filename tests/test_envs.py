@@ -6,7 +6,7 @@ import pytest
 import torch
 from conftest import SHORT_REACH
 from torchrl.envs import ParallelEnv, SerialEnv
-from torchrl.envs.utils import check_env_specs
+from torchrl.envs.utils import check_env_specs, step_mdp
 
 from torchrl_dalir import TASKS, keys, make_env
 from torchrl_dalir.envs import get_task
@@ -143,3 +143,29 @@ def test_history_stacks_observations():
     assert torch.equal(rollout[keys.AGENT_POS][0, 0], rollout[keys.AGENT_POS][0, 1])
     assert torch.equal(rollout[keys.AGENT_POS][1, 0], rollout[keys.AGENT_POS][0, 1])
     assert torch.equal(rollout[keys.POINT_CLOUD][2, 0], rollout[keys.POINT_CLOUD][1, 1])
+
+
+def test_decision_period_renders_only_the_clouds_decisions_read():
+    actions = torch.from_numpy(np.random.default_rng(0).uniform(-1, 1, (11, 4)).astype(np.float32))
+
+    def play(**kwargs):
+        env = make_env(SHORT_REACH, seed=0, num_points=32, history=2, **kwargs)
+        td, steps = env.reset(), []
+        for action in actions:
+            td = env.step(td.set(keys.ACTION, action))
+            steps.append(td["next"].clone())
+            td = step_mdp(td)
+        env.close()
+        return steps
+
+    every, lazy = play(), play(decision_period=4)
+    newest = torch.stack([step[keys.POINT_CLOUD][-1] for step in lazy])  # the cloud of step t = 1..11
+    rendered = [t for t in range(1, 12) if torch.isfinite(newest[t - 1]).all()]
+    assert rendered == [3, 4, 7, 8, 11]  # decisions at 4 and 8 read steps 3-4 and 7-8; step 11 is read at 12
+    assert all(torch.isnan(newest[t - 1]).all() for t in range(1, 12) if t not in rendered)
+    for t in (4, 8):  # what a decision reads is what an env rendering every step gives
+        assert torch.equal(lazy[t - 1][keys.POINT_CLOUD], every[t - 1][keys.POINT_CLOUD])
+    for a, b in zip(every, lazy):  # rendering leaves the episode unchanged
+        assert torch.equal(a[keys.AGENT_POS], b[keys.AGENT_POS]) and torch.equal(a[keys.REWARD], b[keys.REWARD])
+    with pytest.raises(ValueError, match="decision_period must be at least 1"):
+        make_env(SHORT_REACH, decision_period=0)

@@ -135,14 +135,23 @@ class PointCloudObservation(gym.Wrapper):
     ``render=False`` there is no point cloud: a state-only env, ~10x faster, for experts. With
     ``pixels > 0``, ``pixels`` holds an RGB render ``[pixels, pixels, 3]`` from the same camera (for
     videos; none by default).
+
+    With ``decision_period=k > 1`` a cloud is rendered only for the observations that a policy deciding
+    at steps 0, k, 2k, ... reads (the last ``history`` up to each decision); the others are NaN.
+    Rendering leaves the physics untouched, so the episode is the same, with about ``k / history``
+    times fewer renders (the step count is the step limit's, which :meth:`set_state` restores).
     """
 
-    def __init__(self, env: gym.Env, task: TaskSpec, num_points: int = 512, render: bool = True, pixels: int = 0):
+    def __init__(self, env: gym.Env, task: TaskSpec, num_points: int = 512, render: bool = True, pixels: int = 0,
+                 decision_period: int = 1, history: int = 1):
         super().__init__(env)
         self.task = task
         self.num_points = num_points
         self.render_points = render
         self.pixels = pixels
+        self.decision_period, self.history = decision_period, history
+        if decision_period > 1 and _time_limit(env) is None:
+            raise ValueError(f"decision_period={decision_period} counts steps with the env's step limit, and {task.name}'s env has none")
         state_dim = len(task.privileged_state(env.unwrapped, env.observation_space.sample()))
         unbounded = dict(low=-np.inf, high=np.inf, dtype=np.float32)
         spaces = {
@@ -163,7 +172,9 @@ class PointCloudObservation(gym.Wrapper):
             keys.AGENT_POS: np.asarray(self.task.agent_pos(raw, state), dtype=np.float32),
             keys.PRIVILEGED_STATE: np.asarray(self.task.privileged_state(raw, state), dtype=np.float32),
         }
-        if self.render_points:
+        if self.render_points and not self._read_by_a_decision():
+            observation[keys.POINT_CLOUD] = np.full((self.num_points, 3), np.nan, dtype=np.float32)
+        elif self.render_points:
             first = self._camera is None
             if first:
                 t = self.task
@@ -178,6 +189,14 @@ class PointCloudObservation(gym.Wrapper):
                 self._rgb_camera = RGBCamera(raw.model, self.task.camera, self.pixels)
             observation[keys.PIXELS] = self._rgb_camera(raw.data)
         return observation
+
+    def _read_by_a_decision(self) -> bool:
+        """Whether a decision every ``decision_period`` steps reads the current observation (it
+        reads the last ``history`` ones: steps ``t`` with ``(t + history - 1) mod period < history``)."""
+        if self.decision_period == 1:
+            return True
+        step = _time_limit(self.env)._elapsed_steps  # 0 after a reset, t after the t-th step
+        return (step + self.history - 1) % self.decision_period < self.history
 
     def reset(self, *, seed=None, options=None):
         state, _ = self.env.reset(seed=seed, options=options)

@@ -26,6 +26,7 @@ def make_env(
     render: bool = True,
     history: int = 1,
     pixels: int = 0,
+    decision_period: int = 1,
     device: str | torch.device = "cpu",
 ) -> EnvBase:
     """Builds a TorchRL env for a benchmark task (``door``, ``pen``, ``disassemble``, ...).
@@ -58,6 +59,12 @@ def make_env(
         pixels: with ``pixels > 0``, ``pixels`` holds an RGB render ``[pixels, pixels, 3]`` (uint8)
             from the task's camera at every step, for videos (TorchRL's ``VideoRecorder`` reads it;
             see :mod:`torchrl_dalir.evaluation.video`). ``0`` (the default) renders none.
+        decision_period: with ``k > 1``, point clouds are rendered only for the observations that a
+            policy deciding every ``k`` steps reads (a receding-horizon actor executing ``k`` actions
+            per chunk: the last ``history`` observations up to each decision) and are NaN at the other
+            steps; the episodes are the same, with about ``k / history`` times fewer renders. For
+            evaluation, where nothing else reads the clouds (:func:`~torchrl_dalir.evaluation.evaluate`
+            sets it); a policy that decides at another step meets NaN and refuses it.
         device: where the env's tensors live.
 
     Example:
@@ -71,10 +78,11 @@ def make_env(
     check_at_least("history", history, 1)
     check_at_least("pixels", pixels, 0)
     check_at_least("seed_stride", seed_stride, 0)
+    check_at_least("decision_period", decision_period, 1)
     if seed_stride and seed is None:
         raise ValueError("seed_stride needs a seed: the first episode's")
     spec = get_task(task)
-    simulator = PointCloudObservation(make_simulator(spec), spec, num_points, render, pixels)
+    simulator = PointCloudObservation(make_simulator(spec), spec, num_points, render, pixels, decision_period, history)
     info_spec = Composite({keys.SUCCESS: Categorical(2, shape=(1,), dtype=torch.bool, device=device)})
     if seed_stride:
         simulator = EpisodeSeeds(simulator, seed, seed_stride)

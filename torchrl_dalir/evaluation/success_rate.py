@@ -16,6 +16,7 @@ from torchrl_dalir import keys
 from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs import get_task, make_env
 from torchrl_dalir.evaluation.video import VIDEO_SIZE, gif_recorder
+from torchrl_dalir.modules.receding_horizon import RecedingHorizonActor
 from torchrl_dalir.seeds import check_eval_seed, eval_episode_seed
 
 
@@ -95,6 +96,11 @@ def evaluate(
             (:data:`~torchrl_dalir.evaluation.video.VIDEO_SIZE`), as ``<video_prefix>_<episode>.gif``
             (one frame at the reset and one per step). The episodes are the same as without.
         video_prefix: where the videos go: a folder and a file-name prefix, e.g. ``videos/base``.
+
+    For a :class:`~torchrl_dalir.modules.RecedingHorizonActor` the envs built here render point
+    clouds only for the observations its decisions read (``make_env``'s ``decision_period``, set to the
+    actor's ``action_steps``): the same episodes with about ``action_steps / history`` times fewer
+    renders. ``decision_period=1`` renders every step.
     """
     check_at_least("num_episodes", num_episodes, 1)
     check_eval_seed(seed)
@@ -105,6 +111,8 @@ def evaluate(
         raise ValueError(f"video={video} needs video_prefix=<folder>/<name> for the files")
     if video and env is not None:
         raise ValueError("video= records in an env of its own (which renders pixels): pass env= or video=, not both")
+    if isinstance(policy, RecedingHorizonActor):
+        env_kwargs.setdefault("decision_period", policy.action_steps)  # nothing else reads the other clouds
     make = partial(make_env, task, seed=None, **env_kwargs)
     recording = None  # the env of the recorded episodes (the others render no pixels)
     if video:

@@ -1,0 +1,31 @@
+"""Evaluation episodes: the same episodes whatever the env renders."""
+
+import torch
+
+from torchrl_dalir import keys
+
+
+def test_evaluation_renders_only_the_clouds_decisions_read_and_replays_the_same_episodes(trained_world_model):
+    from torchrl_dalir import RerankingActor
+    from torchrl_dalir.evaluation import evaluate
+    from torchrl_dalir.modules.receding_horizon import receding_horizon
+
+    _, wm_path, policy_path = trained_world_model
+    actor = RerankingActor.from_checkpoints(policy_path, wm_path, num_candidates=3, seed=0)
+    policy = actor.policy
+    kwargs = dict(num_points=policy.num_points, history=policy.config.obs_steps, max_steps=20, progress=False)
+
+    def records(decision_period=None):
+        actor.reset(0)
+        period = {} if decision_period is None else {"decision_period": decision_period}
+        steps = []
+        result = evaluate(receding_horizon(actor), "reach", 2, seed=1, describe=lambda rollout: steps.append(rollout) or {}, **period, **kwargs)
+        return result.to_dict()["episodes"], steps
+
+    (lazy, lazy_rollouts), (every, every_rollouts) = records(), records(decision_period=1)
+    assert lazy == every  # the same choices, actions and outcomes
+    for a, b in zip(lazy_rollouts, every_rollouts):
+        assert torch.equal(a[keys.ACTION], b[keys.ACTION])
+        rendered = torch.isfinite(a[keys.POINT_CLOUD]).reshape(a.shape[-1], -1).all(-1)  # [steps]: both frames rendered
+        assert rendered.float().mean() < 0.5 and torch.isfinite(b[keys.POINT_CLOUD]).all()  # fewer renders here
+        assert rendered.tolist() == [t % policy.config.action_steps == 0 for t in range(a.shape[-1])]  # at the decisions only
