@@ -64,6 +64,7 @@ def main(argv: list[str]) -> None:
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps}
     rows = []
     for name, actor in actors.items():
+        evaluate(actor, policy.task, 1, cfg.seed, progress=False, max_steps=2 * policy.config.action_steps, **env_kwargs)  # warm-up
         every_records, every = timed(actor, policy.task, cfg, decision_period=1, **env_kwargs)
         lazy_records, lazy = timed(actor, policy.task, cfg, **env_kwargs)
         if lazy_records != every_records:

@@ -150,7 +150,8 @@ def test_decision_period_renders_only_the_clouds_decisions_read():
 
     def play(**kwargs):
         env = make_env(SHORT_REACH, seed=0, num_points=32, history=2, **kwargs)
-        td, steps = env.reset(), []
+        td = env.reset()
+        steps = [td.clone()]
         for action in actions:
             td = env.step(td.set(keys.ACTION, action))
             steps.append(td["next"].clone())
@@ -158,14 +159,14 @@ def test_decision_period_renders_only_the_clouds_decisions_read():
         env.close()
         return steps
 
-    every, lazy = play(), play(decision_period=4)
-    newest = torch.stack([step[keys.POINT_CLOUD][-1] for step in lazy])  # the cloud of step t = 1..11
-    rendered = [t for t in range(1, 12) if torch.isfinite(newest[t - 1]).all()]
-    assert rendered == [3, 4, 7, 8, 11]  # decisions at 4 and 8 read steps 3-4 and 7-8; step 11 is read at 12
-    assert all(torch.isnan(newest[t - 1]).all() for t in range(1, 12) if t not in rendered)
-    for t in (4, 8):  # what a decision reads is what an env rendering every step gives
-        assert torch.equal(lazy[t - 1][keys.POINT_CLOUD], every[t - 1][keys.POINT_CLOUD])
-    for a, b in zip(every, lazy):  # rendering leaves the episode unchanged
+    every, lazy = play(), play(decision_period=4)  # the observations of steps t = 0 (the reset) .. 11
+    newest = torch.stack([step[keys.POINT_CLOUD][-1] for step in lazy])
+    rendered = [t for t in range(12) if torch.isfinite(newest[t]).all()]
+    assert rendered == [0, 3, 4, 7, 8, 11]  # decisions at 0, 4 and 8 read steps 0, 3-4 and 7-8; step 11 is read at 12
+    assert all(torch.isnan(newest[t]).all() for t in range(12) if t not in rendered)
+    for t in (0, 4, 8):  # what a decision reads is what an env rendering every step gives
+        assert torch.equal(lazy[t][keys.POINT_CLOUD], every[t][keys.POINT_CLOUD])
+    for a, b in zip(every[1:], lazy[1:]):  # rendering leaves the episode unchanged
         assert torch.equal(a[keys.AGENT_POS], b[keys.AGENT_POS]) and torch.equal(a[keys.REWARD], b[keys.REWARD])
     with pytest.raises(ValueError, match="decision_period must be at least 1"):
         make_env(SHORT_REACH, decision_period=0)

@@ -9,6 +9,7 @@ def test_evaluation_renders_only_the_clouds_decisions_read_and_replays_the_same_
     from torchrl_dalir import RerankingActor
     from torchrl_dalir.evaluation import evaluate
     from torchrl_dalir.modules.receding_horizon import receding_horizon
+    from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
 
     _, wm_path, policy_path = trained_world_model
     actor = RerankingActor.from_checkpoints(policy_path, wm_path, num_candidates=3, seed=0)
@@ -25,7 +26,8 @@ def test_evaluation_renders_only_the_clouds_decisions_read_and_replays_the_same_
     (lazy, lazy_rollouts), (every, every_rollouts) = records(), records(decision_period=1)
     assert lazy == every  # the same choices, actions and outcomes
     for a, b in zip(lazy_rollouts, every_rollouts):
-        assert torch.equal(a[keys.ACTION], b[keys.ACTION])
+        for key in (keys.ACTION, CHOSEN_CANDIDATE, CANDIDATE_SCORES):  # the same candidates, scores and choices
+            assert torch.equal(a[key], b[key])
         rendered = torch.isfinite(a[keys.POINT_CLOUD]).reshape(a.shape[-1], -1).all(-1)  # [steps]: both frames rendered
         assert rendered.float().mean() < 0.5 and torch.isfinite(b[keys.POINT_CLOUD]).all()  # fewer renders here
         assert rendered.tolist() == [t % policy.config.action_steps == 0 for t in range(a.shape[-1])]  # at the decisions only

@@ -15,6 +15,7 @@ import mujoco
 import numpy as np
 
 from torchrl_dalir import keys
+from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs.point_cloud import DepthPointCloudCamera, RGBCamera
 from torchrl_dalir.envs.tasks import METAWORLD, TaskSpec
 
@@ -139,7 +140,7 @@ class PointCloudObservation(gym.Wrapper):
     With ``decision_period=k > 1`` a cloud is rendered only for the observations that a policy deciding
     at steps 0, k, 2k, ... reads (the last ``history`` up to each decision); the others are NaN.
     Rendering leaves the physics untouched, so the episode is the same, with about ``k / history``
-    times fewer renders (the step count is the step limit's, which :meth:`set_state` restores).
+    times fewer renders (if ``k > history``) (the step count is the step limit's, which :meth:`set_state` restores).
     """
 
     def __init__(self, env: gym.Env, task: TaskSpec, num_points: int = 512, render: bool = True, pixels: int = 0,
@@ -149,6 +150,8 @@ class PointCloudObservation(gym.Wrapper):
         self.num_points = num_points
         self.render_points = render
         self.pixels = pixels
+        check_at_least("decision_period", decision_period, 1)
+        check_at_least("history", history, 1)
         self.decision_period, self.history = decision_period, history
         if decision_period > 1 and _time_limit(env) is None:
             raise ValueError(f"decision_period={decision_period} counts steps with the env's step limit, and {task.name}'s env has none")

@@ -62,9 +62,9 @@ def make_env(
         decision_period: with ``k > 1``, point clouds are rendered only for the observations that a
             policy deciding every ``k`` steps reads (a receding-horizon actor executing ``k`` actions
             per chunk: the last ``history`` observations up to each decision) and are NaN at the other
-            steps; the episodes are the same, with about ``k / history`` times fewer renders. For
+            steps; the episodes are the same, with about ``k / history`` times fewer renders (if ``k > history``). For
             evaluation, where nothing else reads the clouds (:func:`~torchrl_dalir.evaluation.evaluate`
-            sets it); a policy that decides at another step meets NaN and refuses it.
+            sets it); the policies and DALI-R's actor refuse a NaN cloud, so a decision at another step fails loudly.
         device: where the env's tensors live.
 
     Example:

@@ -97,7 +97,7 @@ def evaluate(
             (one frame at the reset and one per step). The episodes are the same as without.
         video_prefix: where the videos go: a folder and a file-name prefix, e.g. ``videos/base``.
 
-    For a :class:`~torchrl_dalir.modules.RecedingHorizonActor` the envs built here render point
+    For a :class:`~torchrl_dalir.modules.receding_horizon.RecedingHorizonActor` the envs built here render point
     clouds only for the observations its decisions read (``make_env``'s ``decision_period``, set to the
     actor's ``action_steps``): the same episodes with about ``action_steps / history`` times fewer
     renders. ``decision_period=1`` renders every step.
@@ -112,7 +112,7 @@ def evaluate(
     if video and env is not None:
         raise ValueError("video= records in an env of its own (which renders pixels): pass env= or video=, not both")
     if isinstance(policy, RecedingHorizonActor):
-        env_kwargs.setdefault("decision_period", policy.action_steps)  # nothing else reads the other clouds
+        env_kwargs.setdefault("decision_period", policy.n_steps)  # nothing else reads the other clouds
     make = partial(make_env, task, seed=None, **env_kwargs)
     recording = None  # the env of the recorded episodes (the others render no pixels)
     if video:
