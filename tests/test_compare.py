@@ -162,3 +162,18 @@ def test_summarize_results_adds_committed_records_to_the_runs_and_pools_their_di
         save_records([{**counts, "seed": 2, "methods": {**counts["methods"], "random": {"success_rate": 0.5, "base_only": 2, "method_only": 1}}}], folder)
     with pytest.raises(ValueError, match="4 characters"):
         save_records([{**full, "seed": 3, "methods": {**full["methods"], "random": {"success_rate": 0.25, "outcomes": "00001"}}}], folder)
+
+
+def test_run_record_keeps_the_calibrations_confirmation_on_fresh_validation_episodes():
+    from torchrl_dalir.pipeline.records import run_record
+
+    config = {"task": "reach", "policy": "fm", "seed": 0, "eval_seed": 0, "eval_episodes": 2, "num_candidates": 4, "preset": "smoke", "out": "outputs"}
+    result = {"config": config, "commit": "abc", "success": {"base policy": {"success_rate": 0.5, "records": [{"success": True}, {"success": False}]}}}
+    entry = {"name": "argmax(state)", "success_rate": 0.6, "vs_base": {"base_only": 1, "dalir_only": 4}}
+    calibration = {"episodes": 30, "seed": 1, "alpha": 0.1, "base_success_rate": 0.5, "chosen": "margin(ensemble, k=1, margin=1)", "entries": [entry],
+                   "confirmation": {"episodes": 30, "seed": 2, "entry": "argmax(state)", "base_success_rate": 0.4, "success_rate": 0.4333333,
+                                    "vs_base": {"base_only": 3, "dalir_only": 4}, "confirmed": False}}
+    validation = run_record(result, "fm_seed0", calibration)["validation"]
+    assert validation["confirmation"] == {"episodes": 30, "seed": 2, "entry": "argmax(state)", "base": 0.4, "success_rate": 0.4333,
+                                          "base_only": 3, "method_only": 4, "confirmed": False}
+    assert "confirmation" not in run_record(result, "fm_seed0", {k: v for k, v in calibration.items() if k != "confirmation"})["validation"]

@@ -80,6 +80,13 @@ def run_record(result: dict, run: str, calibration: dict | None = None, commit: 
             "entries": {e["name"]: {"success_rate": round(e["success_rate"], 4), "base_only": e["vs_base"]["base_only"],
                                     "method_only": e["vs_base"]["dalir_only"]} for e in calibration["entries"]},
         }
+        confirmation = calibration.get("confirmation")
+        if confirmation:  # the chosen entry re-run on fresh validation episodes (calibrate's confirm_episodes)
+            record["validation"]["confirmation"] = {
+                "episodes": confirmation["episodes"], "seed": confirmation["seed"], "entry": confirmation["entry"],
+                "base": round(confirmation["base_success_rate"], 4), "success_rate": round(confirmation["success_rate"], 4),
+                "base_only": confirmation["vs_base"]["base_only"], "method_only": confirmation["vs_base"]["dalir_only"],
+                "confirmed": confirmation["confirmed"]}
     return record
 
 
