@@ -5,8 +5,8 @@
 Runs the base policy (and DALI-R, given a world model) on the same ``episodes`` validation
 episodes twice: with the env rendering a cloud at every step (``decision_period=1``) and with the
 evaluation's default, a cloud only for the observations that the receding-horizon decisions read.
-Checks that both give the same episodes, and prints the wall and CPU seconds per env step and
-their ratio.
+Checks that both give the same episodes, and prints the wall and CPU milliseconds per env step
+and their ratio.
 """
 
 from __future__ import annotations

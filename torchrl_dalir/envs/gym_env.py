@@ -140,7 +140,7 @@ class PointCloudObservation(gym.Wrapper):
     With ``decision_period=k > 1`` a cloud is rendered only for the observations that a policy deciding
     at steps 0, k, 2k, ... reads (the last ``history`` up to each decision); the others are NaN.
     Rendering leaves the physics untouched, so the episode is the same, with about ``k / history``
-    times fewer renders (if ``k > history``) (the step count is the step limit's, which :meth:`set_state` restores).
+    times fewer renders if ``k > history``. Steps are counted by the step limit, whose count :meth:`set_state` restores.
     """
 
     def __init__(self, env: gym.Env, task: TaskSpec, num_points: int = 512, render: bool = True, pixels: int = 0,
