@@ -153,7 +153,8 @@ class PointCloudObservation(gym.Wrapper):
         check_at_least("decision_period", decision_period, 1)
         check_at_least("history", history, 1)
         self.decision_period, self.history = decision_period, history
-        if decision_period > 1 and _time_limit(env) is None:
+        self._limit = _time_limit(env)  # the step limit's wrapper, found once: it counts the episode's steps
+        if decision_period > 1 and self._limit is None:
             raise ValueError(f"decision_period={decision_period} counts steps with the env's step limit, and {task.name}'s env has none")
         state_dim = len(task.privileged_state(env.unwrapped, env.observation_space.sample()))
         unbounded = dict(low=-np.inf, high=np.inf, dtype=np.float32)
@@ -198,7 +199,7 @@ class PointCloudObservation(gym.Wrapper):
         reads the last ``history`` ones: steps ``t`` with ``(t + history - 1) mod period < history``)."""
         if self.decision_period == 1:
             return True
-        step = _time_limit(self.env)._elapsed_steps  # 0 after a reset, t after the t-th step
+        step = self._limit._elapsed_steps  # 0 after a reset, t after the t-th step
         return (step + self.history - 1) % self.decision_period < self.history
 
     def reset(self, *, seed=None, options=None):
@@ -220,8 +221,7 @@ class PointCloudObservation(gym.Wrapper):
         physics = np.empty(mujoco.mj_stateSize(raw.model, _PHYSICS_STATE))
         mujoco.mj_getState(raw.model, raw.data, physics, _PHYSICS_STATE)
         attributes = {name: copy.deepcopy(getattr(raw, name)) for name in _STEP_BOOKKEEPING if hasattr(raw, name)}
-        limit = _time_limit(self.env)
-        return SimulatorState(physics, attributes, limit._elapsed_steps if limit is not None else None)
+        return SimulatorState(physics, attributes, self._limit._elapsed_steps if self._limit is not None else None)
 
     def set_state(self, state: SimulatorState) -> None:
         """Returns the episode to a :meth:`get_state` snapshot."""
@@ -230,9 +230,8 @@ class PointCloudObservation(gym.Wrapper):
         mujoco.mj_forward(raw.model, raw.data)
         for name, value in state.attributes.items():
             setattr(raw, name, copy.deepcopy(value))
-        limit = _time_limit(self.env)
-        if limit is not None:
-            limit._elapsed_steps = state.elapsed_steps
+        if self._limit is not None:
+            self._limit._elapsed_steps = state.elapsed_steps
 
     def close(self):
         for camera in (self._camera, self._rgb_camera):
