@@ -23,6 +23,7 @@ import torch
 
 from torchrl_dalir import RerankingActor
 from torchrl_dalir.config import check_at_least, config_dict, parse_config
+from torchrl_dalir.evaluation.calibration import VALIDATION_SEED
 from torchrl_dalir.evaluation.candidate_outcomes import candidate_outcomes, summarize_candidate_outcomes
 from torchrl_dalir.evaluation.compare import check_evaluation_settings
 from torchrl_dalir.evaluation.plots import plot_candidate_outcomes
@@ -39,7 +40,7 @@ class Config:
     decisions: int = 10  # the first decisions of each episode
     stride: int = 1  # analyse every stride-th of them (the others just follow the base policy)
     follow_through: bool = False  # continue every candidate with the base policy to the episode's end
-    seed: int = 0  # the evaluation seed (episodes as in examples/evaluate.py)
+    seed: int = VALIDATION_SEED  # the evaluation seed (episodes as in examples/evaluate.py); not the test episodes' 0
     num_candidates: int = 32
     dropout: float = 0.2
     actor_seed: int = 0
@@ -66,7 +67,8 @@ def main(argv: list[str]) -> dict:
     )
     summary = summarize_candidate_outcomes(records)
     for key, value in summary.items():
-        print(f"{key:28s} {value:.4g}" if isinstance(value, float) else f"{key:28s} {value}")
+        shown = f"{value:.4g}" if isinstance(value, float) else [round(v, 3) for v in value] if isinstance(value, list) else value
+        print(f"{key:40s} {shown}")
     atomic_write(out / "candidate_outcomes.json", json.dumps({"config": config_dict(cfg), "summary": summary, "records": records}, indent=1))
     plot_candidate_outcomes(records, out / "candidate_outcomes.png", title=f"{task}: DALI-R's candidates, imagined vs real")
     return summary

@@ -8,7 +8,12 @@ from torchrl.collectors import Collector
 from torchrl.envs import SerialEnv
 
 from torchrl_dalir import RerankingActor, keys, make_env, receding_horizon
-from torchrl_dalir.evaluation.candidate_outcomes import candidate_outcomes, summarize_candidate_outcomes
+from torchrl_dalir.evaluation.candidate_outcomes import (
+    candidate_outcomes,
+    success_by_score_rank,
+    summarize_candidate_outcomes,
+)
+from torchrl_dalir.evaluation.plots import plot_candidate_outcomes
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.reranking import (
     CANDIDATE_SCORES,
@@ -194,6 +199,8 @@ def test_candidate_outcomes_try_every_candidate_from_the_same_state():
     agent_pos = torch.as_tensor(observation[keys.AGENT_POS]).expand(1, 2, -1)
     chunks, scores = actor.propose(cloud, agent_pos)
     assert torch.allclose(scores[0], torch.tensor(first["imagined_score"]))
+    executed = chunks[0, :, 1:9]
+    assert torch.allclose(torch.tensor(first["action_distance"]), (executed - executed[0]).flatten(1).norm(dim=-1))
     for k in (0, 1, 3):
         env.reset(seed=eval_episode_seed(0, 0))
         for action in chunks[0, k, 1:9].numpy():
@@ -220,9 +227,9 @@ def test_candidate_outcomes_follow_through_every_stride_th_decision():
     assert "final_success" not in candidate_outcomes(RerankingActor(*parts, num_candidates=3, seed=4), task, episodes=1, decisions=1, progress=False)[0]
 
 
-def test_follow_through_summary_exact_values():
+def test_follow_through_summary_exact_values(tmp_path):
     record = {"imagined_score": [0.9, 0.1, 0.5, 0.2], "real_score": [0.3, 0.2, 0.1, 0.4], "success": [False] * 4,
-              "chosen": 0, "rank_correlation": 0.0, "imagination_error": 1.0, "real_spread": 1.0}
+              "chosen": 0, "rank_correlation": 0.0, "imagination_error": 1.0, "real_spread": 1.0, "action_distance": [0.0, 1.0, 2.0, 3.0]}
     split = {**record, "final_success": [True, False, False, True]}
     none = {**record, "final_success": [False, False, False, False]}
     summary = summarize_candidate_outcomes([split, none])
@@ -236,6 +243,12 @@ def test_follow_through_summary_exact_values():
     assert summary["imagined_score_auc_there"] == 0.75
     assert summary["real_score_auc_there"] == 1.0  # (0.3, 0.4) against (0.2, 0.1)
     assert "final_success_pick" not in summarize_candidate_outcomes([record])
+    # one candidate per quarter here, lowest score first: 0.1, 0.2, 0.5, 0.9
+    assert summary["final_success_by_imagined_score_quarter"] == [0.0, 0.5, 0.0, 0.5]
+    assert success_by_score_rank([split, none], bins=2) == [0.25, 0.25]
+    # perturbed candidates: |score - median 0.2| = (0.1, 0.3, 0.0) against distances (1, 2, 3)
+    assert summary["extreme_score_distance_correlation"] == pytest.approx(-0.5)
+    assert plot_candidate_outcomes([split, none], tmp_path / "outcomes.png").stat().st_size > 0  # with the success-by-quarter panel
 
 
 def test_dropout_policy_samples_a_dropout_candidate_and_leaves_the_observation_clean():

@@ -28,6 +28,15 @@ def test_each_rule_makes_the_expected_choice():
     assert select(MEMBERS, SelectionConfig("margin", k=1.0, margin=0.04)).item() == 0
     assert select(MEMBERS, SelectionConfig("margin", k=0.0, margin=0.04)).item() == 1  # no pessimism: 0.05 > 0.04
     assert select(MEMBERS, SelectionConfig("margin", k=1.0, margin=1.0)).item() == 0
+
+
+def test_only_a_margin_of_at_least_one_keeps_the_clean_candidate_whatever_the_scores():
+    assert [SelectionConfig("margin", margin=m).keeps_clean for m in (1.0, 2.0, 0.99)] == [True, True, False]
+    assert not SelectionConfig("argmax").keeps_clean and not SelectionConfig("pessimistic", k=1.0).keeps_clean
+    # the most extreme probabilities: the clean candidate 0, another 1, in every member
+    extreme = torch.tensor([[[0.0, 1.0, 0.5]] * 3])
+    assert select(extreme, SelectionConfig("margin", margin=1.0)).item() == 0
+    assert select(extreme, SelectionConfig("margin", margin=0.99)).item() == 1
     worse = torch.tensor([[[0.5, 0.4, 0.3]]])  # every other candidate scores below the clean one
     assert select(worse, SelectionConfig("margin", margin=0.0)).item() == 0
 
@@ -151,7 +160,8 @@ def test_calibration_reads_only_validation_episodes_and_stores_its_choice(traine
     assert load_world_model(path).selection == SelectionConfig() and load_world_model(path).calibration is None  # write=False
     seeds.clear()
     record = calibration.calibrate(policy_path, path, grid=grid, rule="margin", episodes=10, seed=1, alpha=1.0)
-    assert set(seeds) == {1} and len(seeds) == 1 + len(grid)
+    assert set(seeds) == {1} and len(seeds) == len(grid)  # the base policy and every entry but margin 1, its replay
+    assert record["entries"][0]["success_rate"] == 0.4 and record["entries"][0]["seconds"] == 0.0
     # the best margin setting, the first of two equals; argmax(state) scored more but is not of the rule
     assert record["chosen"] == "margin(ensemble, k=1, margin=0.02)"
     assert record["entries"][1]["vs_base"] == {"base_only": 0, "dalir_only": 2, "p_value": 0.5}

@@ -19,7 +19,14 @@ from __future__ import annotations
 from pathlib import Path
 
 from torchrl_dalir.checkpoints import load_world_model, store_selection
-from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints, p_better, paired_sign_test
+from torchrl_dalir.evaluation.compare import (
+    BASE,
+    DALIR,
+    evaluate_checkpoints,
+    p_better,
+    paired_sign_test,
+    replays_base_policy,
+)
 from torchrl_dalir.reranking.selection import SelectionConfig
 
 TEST_SEED = 0  # the evaluation seed of the episodes that results report
@@ -61,7 +68,9 @@ def calibrate(
     of evaluation seed ``seed``, picks an entry with :func:`choose` and, if ``write``,
     stores it in the world-model checkpoint (``selection``, with the whole record under
     ``calibration``). Returns that record: per entry its name, settings, success rate, the
-    paired comparison with the base policy, and the chosen entry.
+    paired comparison with the base policy, and the chosen entry. An entry that keeps the clean
+    candidate at every decision (margin 1) is the base policy's episodes under common noise
+    (:func:`~torchrl_dalir.evaluation.compare.replays_base_policy`) and is not run again.
 
     With ``confirm_episodes > 0`` a chosen entry other than the most conservative one must win
     again on ``confirm_episodes`` fresh validation episodes (evaluation seed ``confirm_seed``,
@@ -91,7 +100,10 @@ def calibrate(
     base_successes = [r["success"] for r in base["records"]]
     entries = []
     for entry in grid:
-        row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=entry, **common)[DALIR]
+        if replays_base_policy(entry, evaluate_kwargs.get("common_noise", True), evaluate_kwargs.get("search")):
+            row = {**base, "seconds": 0.0}  # margin 1: the base policy's episodes, not run again
+        else:
+            row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=entry, **common)[DALIR]
         successes = [r["success"] for r in row["records"]]
         entries.append({"name": entry.name, "selection": entry.to_dict(), "success_rate": row["success_rate"],
                         "vs_base": paired_sign_test(base_successes, successes), "seconds": row["seconds"]})

@@ -88,8 +88,9 @@ def candidate_outcomes(
     one record per decision: ``imagined_score`` and ``real_score`` (the scorer on the imagined and
     on the real latent after the executed actions, ``[K]`` each), ``success`` (the candidate
     succeeded within its actions), ``chosen`` (DALI-R's pick), ``rank_correlation`` (Spearman,
-    across candidates), ``imagination_error`` (mean L2 between imagined and real latents) and
-    ``real_spread`` (mean L2 of the real latents from their mean). With ``follow_through``,
+    across candidates), ``imagination_error`` (mean L2 between imagined and real latents),
+    ``real_spread`` (mean L2 of the real latents from their mean) and ``action_distance`` (``[K]``,
+    the L2 distance of each candidate's executed actions from the clean candidate's). With ``follow_through``,
     ``final_success`` ``[K]`` says whether each candidate's episode, continued with the base policy
     (its own seeded noise), succeeded by its end; it costs a rest-of-episode rollout per candidate.
     """
@@ -148,6 +149,7 @@ def _try_candidates(actor: RerankingActor, env: PointCloudObservation, observati
         "rank_correlation": float(spearmanr(scores.numpy(), real_score.cpu().numpy()).statistic),
         "imagination_error": float((imagined - real).norm(dim=-1).mean()),
         "real_spread": float((real - real.mean(0)).norm(dim=-1).mean()),
+        "action_distance": np.linalg.norm((executed - executed[0]).reshape(len(executed), -1), axis=-1).tolist(),
     }
     if actor.ensemble is not None:  # the scorer ensemble's rating of the same imagined outcomes
         record["ensemble_score"] = torch.sigmoid(actor.ensemble(imagined)).mean(0).tolist()
@@ -158,9 +160,11 @@ def _try_candidates(actor: RerankingActor, env: PointCloudObservation, observati
 
 
 def summarize_candidate_outcomes(records: list[dict]) -> dict:
-    """Medians over decisions; how DALI-R's pick ranks among the candidates' real scores; and, at
+    """Medians over decisions; how DALI-R's pick ranks among the candidates' real scores; at
     decisions where only some candidates finish the task within their actions, how often the pick
-    does against the candidates' average (chance)."""
+    does against the candidates' average (chance); whether extreme scores go to the candidates
+    that moved furthest (:func:`_extreme_score_distance_correlation`); and, with follow-through
+    records, :func:`_follow_through_summary`."""
     correlations = [r["rank_correlation"] for r in records if np.isfinite(r["rank_correlation"])]
     # The pick's percentile among the other candidates' real scores: 1 best, 0 worst, 0.5 chance.
     percentiles = [
@@ -179,8 +183,38 @@ def summarize_candidate_outcomes(records: list[dict]) -> dict:
         "decisions_some_candidates_succeed": len(split),
         "pick_succeeds_there": float(np.mean([r["success"][r["chosen"]] for r in split])) if split else float("nan"),
         "candidates_succeed_there": float(np.mean([np.mean(r["success"]) for r in split])) if split else float("nan"),
+        **({"extreme_score_distance_correlation": _extreme_score_distance_correlation(records)} if all("action_distance" in r for r in records) else {}),
         **_follow_through_summary([r for r in records if "final_success" in r]),
     }
+
+
+def _extreme_score_distance_correlation(records: list[dict]) -> float:
+    """Median over decisions of the Spearman correlation, across the perturbed candidates, between
+    how far a candidate's imagined score lies from the decision's median score and how far its
+    actions lie from the clean candidate's: positive when the extreme scores go to the candidates
+    that moved furthest, i.e. where the world model and scorer extrapolate."""
+    values = []
+    for r in records:
+        scores, distance = np.asarray(r["imagined_score"][1:]), np.asarray(r["action_distance"][1:])
+        if len(scores) > 2 and np.ptp(scores) > 0 and np.ptp(distance) > 0:
+            values.append(spearmanr(np.abs(scores - np.median(scores)), distance).statistic)
+    return median(values) if values else float("nan")
+
+
+def success_by_score_rank(records: list[dict], score: str = "imagined_score", bins: int = 4) -> list[float]:
+    """How often a candidate's episode went on to succeed (``final_success``), by the rank of its
+    ``score`` within its decision, in ``bins`` equal groups from the lowest scores to the highest:
+    flat when the score tells nothing, rising when it orders the candidates, and falling at both
+    ends when its extremes mark candidates it misjudges."""
+    if bins < 1:
+        raise ValueError(f"bins must be at least 1, got {bins}")
+    successes, counts = np.zeros(bins), np.zeros(bins)
+    for r in records:
+        ranks = np.argsort(np.argsort(r[score], kind="stable"), kind="stable")  # 0: the lowest score
+        group = ranks * bins // len(ranks)
+        np.add.at(successes, group, np.asarray(r["final_success"], dtype=float))
+        np.add.at(counts, group, 1)
+    return [float(s / c) if c else float("nan") for s, c in zip(successes, counts)]
 
 
 def _follow_through_summary(records: list[dict]) -> dict:
@@ -189,7 +223,8 @@ def _follow_through_summary(records: list[dict]) -> dict:
     scorer rates best (DALI-R with perfect imagination); and, at decisions where only some
     candidates go on to succeed, the area under the ROC curve of each score (imagined, real, and the
     scorer ensemble's on the imagined outcome where the world model has one) for telling them
-    apart (0.5: no better than chance)."""
+    apart (0.5: no better than chance); and the success by score quarter
+    (:func:`success_by_score_rank`)."""
     if not records:
         return {}
 
@@ -215,4 +250,7 @@ def _follow_through_summary(records: list[dict]) -> dict:
         "imagined_score_auc_there": auc("imagined_score"),
         "real_score_auc_there": auc("real_score"),
         **({"ensemble_score_auc_there": auc("ensemble_score")} if all("ensemble_score" in r for r in records) else {}),
+        "final_success_by_imagined_score_quarter": success_by_score_rank(records),
+        **({"final_success_by_ensemble_score_quarter": success_by_score_rank(records, "ensemble_score")}
+           if all("ensemble_score" in r for r in records) else {}),
     }

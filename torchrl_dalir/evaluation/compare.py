@@ -75,8 +75,11 @@ def evaluate_checkpoints(
     ``n`` episodes of each method as ``<video_dir>/<method>_episode_<i>.gif`` (TorchRL's
     ``VideoRecorder``, see :func:`~torchrl_dalir.evaluation.success_rate.evaluate`), e.g.
     ``base_episode_0.gif`` next to ``dalir_episode_0.gif``: the same episode for each method.
-    A method that repeats another's row (``argmax`` when the checkpoint's rule is the arg-max) is not run again,
-    so has no videos of its own.
+    A method that repeats another's row is not run again, so has no videos of its own: ``argmax`` when
+    the checkpoint's rule is the arg-max, and, with ``common_noise`` and no ``search``, a DALI-R whose
+    rule keeps the clean candidate at every decision (:attr:`SelectionConfig.keeps_clean`, e.g. a
+    calibration that kept the base policy): its row is the base policy's episodes, marked
+    ``"replays": "base policy"`` and without the per-decision ``details`` (run ``base`` first).
     """
     check_evaluation_settings(episodes, seed, num_candidates, dropout, video=video)
     if video and video_dir is None:
@@ -96,9 +99,13 @@ def evaluate_checkpoints(
     rows, by_rule = {}, {}  # DALI-R with the same rule on the same episodes gives the same row: run it once
     for method in methods:
         if method in ("dalir", "argmax"):
-            rule = rules[method].get("selection", stored).name
-            if rule in by_rule:
-                rows[METHODS[method]] = by_rule[rule]
+            rule = rules[method].get("selection", stored)
+            if rule.name in by_rule:
+                rows[METHODS[method]] = by_rule[rule.name]
+                continue
+            if BASE in rows and replays_base_policy(rule, common_noise, search):
+                rows[METHODS[method]] = by_rule[rule.name] = {"selection": rule.name, **rows[BASE], "seconds": 0.0, "replays": BASE}
+                print(f"[evaluation] {policy.task} {METHODS[method]}: {rule.name} keeps the clean candidate: the base policy's episodes", flush=True)
                 continue
         start = time.perf_counter()
         if method == "base":
@@ -122,9 +129,17 @@ def evaluate_checkpoints(
             "records": result.to_dict()["episodes"],
         }
         if method in ("dalir", "argmax"):
-            by_rule[rule] = rows[name]
+            by_rule[rule.name] = rows[name]
         print(f"[evaluation] {policy.task} {name}: {result.success_rate:.1%} over {episodes} episodes", flush=True)
     return rows
+
+
+def replays_base_policy(selection: SelectionConfig, common_noise: bool = True, search: SearchConfig | None = None) -> bool:
+    """Whether DALI-R with ``selection`` plays exactly the base policy's episodes, so need not be
+    run: its rule keeps the clean candidate at every decision, which common noise samples as the
+    base policy does, and no action-space search replaces the candidates (tested in
+    ``tests/test_common_noise.py``)."""
+    return selection.keeps_clean and common_noise and search is None
 
 
 def paired_sign_test(base: list[bool], dalir: list[bool]) -> dict:

@@ -140,9 +140,14 @@ def plot_candidate_outcomes(records: list[dict], path: str | Path, title: str = 
     """Imagined against real outcomes of DALI-R's candidates (records of
     :func:`~torchrl_dalir.evaluation.candidate_outcomes.candidate_outcomes`): (left) every
     candidate's imagined and real score, each minus its decision's mean, so that only the
-    within-decision ordering that reranking uses remains; (right) the per-decision rank
-    correlations."""
-    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8), dpi=80)
+    within-decision ordering that reranking uses remains; (middle) the per-decision rank
+    correlations; (right, with follow-through records) how often the candidates went on to
+    succeed, by the quarter of their imagined score within the decision."""
+    from torchrl_dalir.evaluation.candidate_outcomes import success_by_score_rank
+
+    followed = all("final_success" in r for r in records)
+    fig, axes = plt.subplots(1, 3 if followed else 2, figsize=(15 if followed else 10, 3.8), dpi=80)
+    left, middle = axes[:2]
     imagined = np.concatenate([np.asarray(r["imagined_score"]) - np.mean(r["imagined_score"]) for r in records])
     real = np.concatenate([np.asarray(r["real_score"]) - np.mean(r["real_score"]) for r in records])
     left.scatter(imagined, real, s=4, alpha=0.4)
@@ -152,10 +157,22 @@ def plot_candidate_outcomes(records: list[dict], path: str | Path, title: str = 
     left.set_ylabel("real score - decision mean")
     left.set_title("candidates within a decision")
     correlations = [r["rank_correlation"] for r in records if np.isfinite(r["rank_correlation"])]
-    right.hist(correlations, bins=np.linspace(-1, 1, 21))
-    right.axvline(0, color="k", lw=0.5)
-    right.set_xlabel("Spearman correlation, imagined vs real score")
-    right.set_ylabel("decisions")
-    right.set_title("does imagination order the candidates?")
+    middle.hist(correlations, bins=np.linspace(-1, 1, 21))
+    middle.axvline(0, color="k", lw=0.5)
+    middle.set_xlabel("Spearman correlation, imagined vs real score")
+    middle.set_ylabel("decisions")
+    middle.set_title("does imagination order the candidates?")
+    if followed:
+        right = axes[2]
+        scores = ["imagined_score", *(["ensemble_score"] if all("ensemble_score" in r for r in records) else [])]
+        width = 0.8 / len(scores)
+        for i, score in enumerate(scores):
+            right.bar(np.arange(4) + i * width, success_by_score_rank(records, score), width, label=score.replace("_", " "))
+        right.axhline(np.mean([np.mean(r["final_success"]) for r in records]), color="k", lw=0.8, ls="--", label="all candidates")
+        right.set_xticks(np.arange(4) + 0.4 - width / 2, ["lowest", "2nd", "3rd", "highest"])
+        right.set_xlabel("quarter of the candidate's score within its decision")
+        right.set_ylabel("episode success after it")
+        right.set_title("do higher scores go on to succeed?")
+        right.legend(fontsize=8)
     fig.suptitle(title)
     return _save(fig, path)

@@ -63,7 +63,9 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
         lines.append(f"On imagined latents of held-out chunks (target at t + k): Brier {metrics['imagined_brier_state_scorer']:.4f} "
                      f"(state scorer) vs {metrics['imagined_brier_ensemble']:.4f} (scorer ensemble, member std {metrics['ensemble_std']:.4f}).")
     for name in (DALIR, ARGMAX):
-        if name in rows:
+        if name in rows and "replays" in rows[name]:
+            lines.append(f"{name}'s rule ({rows[name]['selection']}) keeps the clean candidate at every decision: it is the {rows[name]['replays']}'s episodes, not run again.")
+        elif name in rows:
             choices = pool_decision_summaries([record["details"] for record in rows[name]["records"]])
             lines.append(f"{name}'s choices over {choices['decisions']} decisions: the clean candidate kept in {choices['clean_chosen']:.0%}; "
                          f"the chosen candidate scored {choices['chosen_margin']:.4f} above the clean one (candidate score std {choices['score_spread']:.4f}).")

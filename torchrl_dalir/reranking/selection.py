@@ -61,6 +61,13 @@ class SelectionConfig:
                     "margin": f", k={self.k:g}, margin={self.margin:g}"}.get(self.rule, "")
         return f"{self.rule}({self.scorer}{settings})"
 
+    @property
+    def keeps_clean(self) -> bool:
+        """Whether the rule executes the clean candidate at every decision whatever the scores:
+        ``margin`` with a margin of at least 1, which no advantage between probabilities exceeds.
+        With common noise such a DALI-R is the base policy, episode for episode."""
+        return self.rule == "margin" and self.margin >= 1
+
     def to_dict(self) -> dict:
         return asdict(self)
 
