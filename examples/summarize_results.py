@@ -65,7 +65,7 @@ def gather(records: list[dict]) -> list[dict]:
     (``discordant``); each seed's run, DALI-R rule and calibration on validation episodes; and the
     sign test of DALI-R against the base policy."""
     groups = defaultdict(lambda: {"seeds": [], "runs": [], "episodes": set(), "rules": [], "validation": {},
-                                  "discordant": defaultdict(lambda: [0, 0]), **{m: [] for m in METHODS}})
+                                  "discordant": defaultdict(lambda: [0, 0]), "argmax_vs_random": [0, 0, 0], **{m: [] for m in METHODS}})
     for record in sorted(records, key=lambda r: (r["task"], r["policy"], r["variant"], r["seed"])):
         group = groups[(record["task"], record["policy"], record["variant"])]
         group["seeds"].append(record["seed"])
@@ -79,6 +79,10 @@ def gather(records: list[dict]) -> list[dict]:
             if short != "base":
                 counts = group["discordant"][short]
                 counts[0], counts[1] = (a + b for a, b in zip(counts, discordant(record, short)))
+        # the scorer's pick against a random pick among the same candidates, where both kept their episodes
+        pair = discordant(record, "argmax", against="random") if {"argmax", "random"} <= set(record["methods"]) else None
+        if pair is not None:
+            group["argmax_vs_random"] = [a + b for a, b in zip(group["argmax_vs_random"], (*pair, 1))]
     return [{"task": t, "policy": p, "variant": v, **g, "episodes": sorted(g["episodes"]), "discordant": dict(g["discordant"]),
              **sign_test(*g["discordant"]["dalir"])} for (t, p, v), g in groups.items()]
 
@@ -128,9 +132,10 @@ def trusted_selection(table: list[dict], variant: str = PAPER, tasks: list[str] 
     backbone (``fm`` at the top level, others under their name) and task, the mean success (%) of
     every method, seeds, episodes per seed, the default's sign test against the base policy
     (``p_default_vs_base``, ``only_base``, ``only_default``) and the arg-max's and the random pick's
-    (``argmax_vs_base``, ``random_vs_base``), each seed's rule and validation results; the default
-    rule (the rule families that calibration chose from) and the mean gain over the tasks of the
-    default, the arg-max and the random pick."""
+    (``argmax_vs_base``, ``random_vs_base``), the arg-max against the random pick
+    (:func:`argmax_vs_random`), each seed's rule and validation results; the default rule (the
+    rule families that calibration chose from), the mean gain over the tasks of the default, the
+    arg-max and the random pick, and the arg-max against the random pick over every task."""
     out = {}
     for policy in sorted({row["policy"] for row in table}):
         rows = trusted_rows(table, policy, variant, tasks)
@@ -141,6 +146,7 @@ def trusted_selection(table: list[dict], variant: str = PAPER, tasks: list[str] 
                                "episodes": row["episodes"][0] if len(row["episodes"]) == 1 else row["episodes"],
                                "p_default_vs_base": row["p_value"], "only_base": row["base_only"], "only_default": row["dalir_only"],
                                **{f"{m}_vs_base": sign_test(*row["discordant"][m]) for m in ("argmax", "random")},
+                               "argmax_vs_random": argmax_vs_random([row]),
                                "rules": dict(zip(map(str, row["seeds"]), row["rules"])),
                                "validation": row["validation"]} for row in rows}
         families = sorted({rule.split("(")[0] for t in per_task.values() for rule in t["rules"].values()})
@@ -149,12 +155,22 @@ def trusted_selection(table: list[dict], variant: str = PAPER, tasks: list[str] 
                  "default_rule": " / ".join(families),
                  "mean_gain": round(mean(t["default"] - t["base"] for t in per_task.values()), 1),
                  "mean_gain_argmax": round(mean(t["argmax"] - t["base"] for t in per_task.values()), 1),
-                 "mean_gain_random": round(mean(t["random"] - t["base"] for t in per_task.values()), 1)}
+                 "mean_gain_random": round(mean(t["random"] - t["base"] for t in per_task.values()), 1),
+                 "argmax_vs_random": argmax_vs_random(rows)}
         if policy == "fm":
             out.update(block)
         else:
             out[policy] = block
     return out
+
+
+def argmax_vs_random(rows: list[dict]) -> dict:
+    """The paper's arg-max against a random pick among the same candidates, pooled over the runs of
+    ``rows`` that kept both methods' per-episode outcomes: the test episodes only the random pick /
+    only the arg-max solved, and the two-sided sign test (is the scorer's choice better than chance?)."""
+    random_only, argmax_only, runs = (sum(row["argmax_vs_random"][i] for row in rows) for i in range(3))
+    test = sign_test(random_only, argmax_only)
+    return {"runs": runs, "random_only": random_only, "argmax_only": argmax_only, "p_value": round(test["p_value"], 4)}
 
 
 def trusted_table(data: dict) -> str:
@@ -171,6 +187,12 @@ def trusted_table(data: dict) -> str:
                          f"{t['random']:.1f} | {pair['random']} |")
         lines.append(f"| {policy} | mean gain over base (points) | | | {block['mean_gain']:+.1f} | | | {block['mean_gain_argmax']:+.1f} | | "
                      f"{block['mean_gain_random']:+.1f} | |")
+    for policy, block in [("fm", data), *((k, v) for k, v in data.items() if isinstance(v, dict) and "tasks" in v)]:
+        if block.get("argmax_vs_random", {}).get("runs"):
+            pair = block["argmax_vs_random"]
+            lines.append(f"\n{policy}: the arg-max against a random pick among the same candidates, over the {pair['runs']} runs that kept "
+                         f"both methods' episodes: only the arg-max {pair['argmax_only']}, only the random pick {pair['random_only']} "
+                         f"(two-sided sign test p = {pair['p_value']:.3f}).")
     return "\n".join(lines) + "\n"
 
 

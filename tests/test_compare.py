@@ -150,6 +150,9 @@ def test_summarize_results_adds_committed_records_to_the_runs_and_pools_their_di
     trusted = json.loads((tmp_path / "tables" / "trusted_selection.json").read_text())["tasks"]["pick-place-wall"]
     assert (trusted["base"], trusted["default"], trusted["argmax"], trusted["random"]) == (50.0, 62.5, 50.0, 37.5)
     assert trusted["validation"] == {"1": {"episodes": 30, "seed": 1, "base": 50.0, "margin(ensemble, k=1, margin=1)": 50.0}}
+    # arg-max 1011 against random 0001 on seed 0 (seed 1 kept no episodes): only the arg-max 2, only random 0
+    assert trusted["argmax_vs_random"] == {"runs": 1, "random_only": 0, "argmax_only": 2, "p_value": 0.5}
+    assert "only the arg-max 2, only the random pick 0" in (tmp_path / "tables" / "trusted_selection.md").read_text()
     summarize = runpy.run_path(str(script))
     dp = {**full, "policy": "dp", "task": "stick-pull"}
     table = summarize["gather"]([full, counts, dp])

@@ -90,13 +90,15 @@ def run_record(result: dict, run: str, calibration: dict | None = None, commit: 
     return record
 
 
-def discordant(record: dict, method: str) -> tuple[int, int]:
-    """The test episodes that only the base policy / only ``method`` solved in ``record``."""
-    row, base = record["methods"][method], record["methods"]["base"]
-    if "outcomes" in row and "outcomes" in base:
-        test = paired_sign_test([c == "1" for c in base["outcomes"]], [c == "1" for c in row["outcomes"]])
+def discordant(record: dict, method: str, against: str = "base") -> tuple[int, int] | None:
+    """The test episodes that only ``against`` / only ``method`` solved in ``record`` (by default
+    against the base policy, whose counts every record keeps); ``None`` for two other methods
+    whose per-episode outcomes the record does not both keep."""
+    row, other = record["methods"][method], record["methods"][against]
+    if "outcomes" in row and "outcomes" in other:
+        test = paired_sign_test([c == "1" for c in other["outcomes"]], [c == "1" for c in row["outcomes"]])
         return test["base_only"], test["dalir_only"]
-    return row["base_only"], row["method_only"]
+    return (row["base_only"], row["method_only"]) if against == "base" else None
 
 
 def check_record(record: dict, where: str = "a run record") -> None:
