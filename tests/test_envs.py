@@ -168,5 +168,11 @@ def test_decision_period_renders_only_the_clouds_decisions_read():
         assert torch.equal(lazy[t][keys.POINT_CLOUD], every[t][keys.POINT_CLOUD])
     for a, b in zip(every[1:], lazy[1:]):  # rendering leaves the episode unchanged
         assert torch.equal(a[keys.AGENT_POS], b[keys.AGENT_POS]) and torch.equal(a[keys.REWARD], b[keys.REWARD])
+    # an episode's last observation is rendered wherever it ends: step 6 is read by no decision
+    env = make_env(dataclasses.replace(SHORT_REACH, max_steps=6), seed=0, num_points=32, history=2, decision_period=4)
+    rollout = env.rollout(10, break_when_any_done=True)
+    assert rollout.shape[-1] == 6 and torch.isfinite(rollout["next", keys.POINT_CLOUD][-1, -1]).all()
+    assert torch.isnan(rollout["next", keys.POINT_CLOUD][-2, -1]).all()  # step 5 is read by no decision either
+    env.close()
     with pytest.raises(ValueError, match="decision_period must be at least 1"):
         make_env(SHORT_REACH, decision_period=0)

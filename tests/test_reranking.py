@@ -224,6 +224,9 @@ def test_candidate_outcomes_follow_through_every_stride_th_decision():
     assert [r["decision"] for r in records] == [0, 2, 4]
     assert all(len(record["final_success"]) == 3 for record in records)
     assert run() == records  # seeded: the follow-through rollouts replay exactly
+    actor = RerankingActor(*parts, num_candidates=3, seed=4)
+    every = candidate_outcomes(actor, task, episodes=1, decisions=5, stride=2, follow_through=True, progress=False, render_every_step=True)
+    assert every == records  # rendering only the clouds that are read changes nothing
     assert "final_success" not in candidate_outcomes(RerankingActor(*parts, num_candidates=3, seed=4), task, episodes=1, decisions=1, progress=False)[0]
 
 

@@ -138,7 +138,8 @@ class PointCloudObservation(gym.Wrapper):
     videos; none by default).
 
     With ``decision_period=k > 1`` a cloud is rendered only for the observations that a policy deciding
-    at steps 0, k, 2k, ... reads (the last ``history`` up to each decision); the others are NaN.
+    at steps 0, k, 2k, ... reads (the last ``history`` up to each decision) and for an episode's
+    last observation (its outcome, e.g. for a scorer); the others are NaN.
     Rendering leaves the physics untouched, so the episode is the same, with about ``k / history``
     times fewer renders if ``k > history``. Steps are counted by the step limit, whose count :meth:`set_state` restores.
     """
@@ -170,13 +171,13 @@ class PointCloudObservation(gym.Wrapper):
         self._camera: DepthPointCloudCamera | None = None
         self._rgb_camera: RGBCamera | None = None
 
-    def _observation(self, state: np.ndarray) -> dict[str, np.ndarray]:
+    def _observation(self, state: np.ndarray, last: bool = False) -> dict[str, np.ndarray]:
         raw = self.env.unwrapped
         observation = {
             keys.AGENT_POS: np.asarray(self.task.agent_pos(raw, state), dtype=np.float32),
             keys.PRIVILEGED_STATE: np.asarray(self.task.privileged_state(raw, state), dtype=np.float32),
         }
-        if self.render_points and not self._read_by_a_decision():
+        if self.render_points and not (last or self._read_by_a_decision()):
             observation[keys.POINT_CLOUD] = np.full((self.num_points, 3), np.nan, dtype=np.float32)
         elif self.render_points:
             first = self._camera is None
@@ -212,7 +213,8 @@ class PointCloudObservation(gym.Wrapper):
         state, reward, terminated, truncated, info = self.env.step(action)
         success = bool(info.get("success", False))
         info = {keys.SUCCESS: np.array([success])}
-        return self._observation(state), float(reward), terminated or success, truncated, info
+        terminated = terminated or success
+        return self._observation(state, last=terminated or truncated), float(reward), terminated, truncated, info
 
     def get_state(self) -> SimulatorState:
         """A snapshot of the episode, so that after :meth:`set_state` the same actions give the

@@ -79,6 +79,7 @@ def candidate_outcomes(
     follow_through: bool = False,
     seed: int = 0,
     progress: bool = True,
+    render_every_step: bool = False,
 ) -> list[dict]:
     """Imagined against real outcomes of every candidate at every ``stride``-th of the first
     ``decisions`` decisions of ``episodes`` evaluation episodes (seeded like
@@ -93,6 +94,9 @@ def candidate_outcomes(
     the L2 distance of each candidate's executed actions from the clean candidate's). With ``follow_through``,
     ``final_success`` ``[K]`` says whether each candidate's episode, continued with the base policy
     (its own seeded noise), succeeded by its end; it costs a rest-of-episode rollout per candidate.
+    Clouds are rendered only where a decision or a candidate's outcome reads them (see
+    :class:`~torchrl_dalir.envs.gym_env.PointCloudObservation`'s ``decision_period``), which gives
+    the same records as ``render_every_step=True`` in about a third of the time.
     """
     policy = actor.policy
     spec = get_task(task)
@@ -102,7 +106,9 @@ def candidate_outcomes(
         raise ValueError(f"stride must be at least 1, got {stride}")
     device = next(policy.parameters()).device
     base_generator = torch.Generator().manual_seed(actor.seed + 1)  # skipped decisions and follow-throughs
-    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points)
+    config = policy.config  # decisions every action_steps steps from the reset, each reading obs_steps observations
+    period = 1 if render_every_step else config.action_steps
+    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, decision_period=period, history=config.obs_steps)
     records = []
     try:
         for episode in tqdm(range(episodes), desc=f"candidate outcomes {spec.name}", disable=not progress, leave=False):
