@@ -1,5 +1,6 @@
 import dataclasses
 
+import numpy as np
 import pytest
 import torch
 from conftest import SHORT_REACH
@@ -251,6 +252,16 @@ def test_follow_through_summary_exact_values(tmp_path):
     assert success_by_score_rank([split, none], bins=2) == [0.25, 0.25]
     # perturbed candidates: |score - median 0.2| = (0.1, 0.3, 0.0) against distances (1, 2, 3)
     assert summary["extreme_score_distance_correlation"] == pytest.approx(-0.5)
+    # tied scores share their rank positions: equal scores spread each candidate over both halves
+    tied = {**split, "imagined_score": [0.5, 0.5, 0.5, 0.5]}
+    assert success_by_score_rank([tied], bins=2) == [0.5, 0.5]
+    # 0.1 takes the lowest position; the three tied at 0.5 share positions 1-3 (1 in the low half, 2 in the high)
+    assert success_by_score_rank([{**tied, "imagined_score": [0.5, 0.1, 0.5, 0.5]}], bins=2) == [pytest.approx(1 / 3), pytest.approx(2 / 3)]
+    with pytest.raises(ValueError, match="fewer than bins=4"):
+        success_by_score_rank([{**split, "imagined_score": [0.1, 0.2, 0.3], "final_success": [True] * 3}])
+    # saturated scores vary but their distance from the median does not: no correlation to take, whatever the order
+    saturated = {**record, "imagined_score": [0.5, 0.0, 0.0, 1.0, 1.0], "action_distance": [0.0, 1.0, 2.0, 3.0, 4.0]}
+    assert np.isnan(summarize_candidate_outcomes([saturated])["extreme_score_distance_correlation"])
     assert plot_candidate_outcomes([split, none], tmp_path / "outcomes.png").stat().st_size > 0  # with the success-by-quarter panel
 
 

@@ -104,7 +104,7 @@ def evaluate_checkpoints(
                 rows[METHODS[method]] = by_rule[rule.name]
                 continue
             if BASE in rows and replays_base_policy(rule, common_noise, search):
-                rows[METHODS[method]] = by_rule[rule.name] = {"selection": rule.name, **rows[BASE], "seconds": 0.0, "replays": BASE}
+                rows[METHODS[method]] = by_rule[rule.name] = {"selection": rule.name, **rows[BASE], "records": list(rows[BASE]["records"]), "seconds": 0.0, "replays": BASE}
                 print(f"[evaluation] {policy.task} {METHODS[method]}: {rule.name} keeps the clean candidate: the base policy's episodes", flush=True)
                 continue
         start = time.perf_counter()
@@ -138,7 +138,8 @@ def replays_base_policy(selection: SelectionConfig, common_noise: bool = True, s
     """Whether DALI-R with ``selection`` plays exactly the base policy's episodes, so need not be
     run: its rule keeps the clean candidate at every decision, which common noise samples as the
     base policy does, and no action-space search replaces the candidates (tested in
-    ``tests/test_common_noise.py``)."""
+    ``tests/test_common_noise.py``). The replay skips what running would check on the way (e.g.
+    that the world model gives finite scores)."""
     return selection.keeps_clean and common_noise and search is None
 
 
