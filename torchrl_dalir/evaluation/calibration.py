@@ -21,6 +21,7 @@ from pathlib import Path
 from torchrl_dalir.checkpoints import load_world_model, store_selection
 from torchrl_dalir.evaluation.compare import (
     BASE,
+    COMMON_NOISE,
     DALIR,
     evaluate_checkpoints,
     p_better,
@@ -100,7 +101,7 @@ def calibrate(
     base_successes = [r["success"] for r in base["records"]]
     entries = []
     for entry in grid:
-        if replays_base_policy(entry, evaluate_kwargs.get("common_noise", True), evaluate_kwargs.get("search")):
+        if replays_base_policy(entry, evaluate_kwargs.get("common_noise", COMMON_NOISE), evaluate_kwargs.get("search")):
             row = {**base, "seconds": 0.0}  # margin 1: the base policy's episodes, not run again
         else:
             row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=entry, **common)[DALIR]

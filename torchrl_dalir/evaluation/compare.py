@@ -21,6 +21,7 @@ from torchrl_dalir.seeds import check_eval_seed
 
 BASE, DALIR, ARGMAX, RANDOM = "base policy", "DALI-R", "DALI-R argmax", "random candidate"
 METHODS = {"base": BASE, "dalir": DALIR, "argmax": ARGMAX, "random": RANDOM}  # short names for command lines
+COMMON_NOISE = True  # evaluations sample DALI-R's clean candidate as the base policy does (RerankingActor's common_noise)
 
 
 def check_evaluation_settings(episodes: int, seed: int, num_candidates: int = 1, dropout: float = 0.0, *, prefix: str = "",
@@ -48,7 +49,7 @@ def evaluate_checkpoints(
     actor_seed: int = 0,
     methods: list[str] | None = None,
     selection: SelectionConfig | None = None,
-    common_noise: bool = True,
+    common_noise: bool = COMMON_NOISE,
     candidates=None,
     search: SearchConfig | None = None,
     progress: bool = True,
