@@ -1,11 +1,13 @@
 """Selection rules, the scorer ensemble, and calibration on validation episodes."""
 
+import warnings
+
 import pytest
 import torch
 from tensordict import TensorDict
 
 from torchrl_dalir import RerankingActor, keys
-from torchrl_dalir.checkpoints import load_world_model
+from torchrl_dalir.checkpoints import load_world_model, store_selection
 from torchrl_dalir.evaluation import calibration
 from torchrl_dalir.modules import ScorerEnsemble, TaskCompletionScorer
 from torchrl_dalir.objectives import ImaginedCompletionLoss
@@ -168,6 +170,12 @@ def test_calibration_reads_only_validation_episodes_and_stores_its_choice(traine
     parts = load_world_model(path)
     assert parts.selection == grid[1] and parts.calibration["chosen"] == record["chosen"]
     assert RerankingActor.from_checkpoints(policy_path, path).selection == grid[1]  # the checkpoint names the default
+    store_selection(path, grid[0])  # calibration kept the base policy: the actor says so unless a rule is passed
+    with pytest.warns(UserWarning, match="always keeps the clean candidate"):
+        assert RerankingActor.from_checkpoints(policy_path, path).selection == grid[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert RerankingActor.from_checkpoints(policy_path, path, selection=grid[3]).selection == grid[3]
     assert RerankingActor.from_checkpoints(policy_path, path, selection=SelectionConfig()).selection == SelectionConfig()
     # with the default evidence rule, 2 episodes won and none lost (one-sided p = 0.25) do not leave the base policy
     record = calibration.calibrate(policy_path, path, grid=grid, rule="margin", episodes=10, seed=1, write=False)

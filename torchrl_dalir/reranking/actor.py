@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -141,8 +142,13 @@ class RerankingActor(TensorDictModuleBase):
         """Wraps an already loaded policy with the world model trained on top of it; refuses a
         world model of another task or another policy
         (:func:`~torchrl_dalir.checkpoints.check_trained_on`). The selection rule is the
-        checkpoint's unless ``selection=`` is passed."""
+        checkpoint's unless ``selection=`` is passed; a stored rule that always keeps the clean
+        candidate (calibration found no rule that beat the base policy) is used with a warning,
+        since the actor then executes the base policy's chunks at DALI-R's cost."""
         parts = load_world_model(world_model_path, device, policy=policy)
+        if "selection" not in kwargs and parts.selection.keeps_clean:
+            warnings.warn(f"{world_model_path}: the calibrated rule {parts.selection.name} always keeps the clean candidate, so this actor "
+                          "executes the base policy's chunks; pass selection= to rerank anyway", stacklevel=2)
         kwargs.setdefault("selection", parts.selection)
         return cls(policy, parts.encoder, parts.world_model, parts.scorer, ensemble=parts.ensemble, **kwargs)
 
