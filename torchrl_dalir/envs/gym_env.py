@@ -138,8 +138,9 @@ class PointCloudObservation(gym.Wrapper):
     videos; none by default).
 
     With ``decision_period=k > 1`` a cloud is rendered only for the observations that a policy deciding
-    at steps 0, k, 2k, ... reads (the last ``history`` up to each decision) and for an episode's
-    last observation (its outcome, e.g. for a scorer); the others are NaN.
+    at steps 0, k, 2k, ... reads (the last ``history`` up to each decision) and for the observation
+    at which the env ends an episode (success or the step limit: its outcome, e.g. for a scorer);
+    the others are NaN, including the last one of a rollout cut short by its own ``max_steps``.
     Rendering leaves the physics untouched, so the episode is the same, with about ``k / history``
     times fewer renders if ``k > history``. Steps are counted by the step limit, whose count :meth:`set_state` restores.
     """
