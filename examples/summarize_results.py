@@ -173,6 +173,10 @@ def argmax_vs_random(rows: list[dict]) -> dict:
     return {"runs": runs, "random_only": random_only, "argmax_only": argmax_only, "p_value": round(test["p_value"], 4)}
 
 
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def trusted_table(data: dict) -> str:
     lines = ["| backbone | task | seeds x episodes | base (%) | default rule (%) | only base / only default | p | arg-max (%) | only base / only arg-max "
              "| random (%) | only base / only random |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -190,7 +194,7 @@ def trusted_table(data: dict) -> str:
     for policy, block in [("fm", data), *((k, v) for k, v in data.items() if isinstance(v, dict) and "tasks" in v)]:
         if block.get("argmax_vs_random", {}).get("runs"):
             pair = block["argmax_vs_random"]
-            lines.append(f"\n{policy}: the arg-max against a random pick among the same candidates, over the {pair['runs']} runs that kept "
+            lines.append(f"\n{policy}: the arg-max against a random pick among the same candidates, over the {_count(pair['runs'], 'run')} that kept "
                          f"both methods' episodes: only the arg-max {pair['argmax_only']}, only the random pick {pair['random_only']} "
                          f"(two-sided sign test p = {pair['p_value']:.3f}).")
     return "\n".join(lines) + "\n"
@@ -224,7 +228,7 @@ def table1_markdown(data: dict) -> str:
                          f"{mean(t['dalir']) - mean(t['base']):+.1f} | {t['p']:.3f} | {', '.join(t['rules'])} | {paper} |")
         gains = [mean(t["dalir"]) - mean(t["base"]) for t in tasks.values()]
         papers = [t["paper_dalir"] - t["paper_base"] for t in tasks.values() if t["paper_base"] is not None]
-        lines.append(f"| {backbone} | average of {len(tasks)} tasks | | {mean(mean(t['base']) for t in tasks.values()):.1f} | "
+        lines.append(f"| {backbone} | average of {_count(len(tasks), 'task')} | | {mean(mean(t['base']) for t in tasks.values()):.1f} | "
                      f"{mean(mean(t['dalir']) for t in tasks.values()):.1f} | {mean(gains):+.1f} | | | "
                      f"{f'gain {mean(papers):+.1f} on the same tasks' if papers else ''} |")
     return "\n".join(lines) + "\n"
