@@ -262,6 +262,8 @@ def test_follow_through_summary_exact_values(tmp_path):
     # saturated scores vary but their distance from the median does not: no correlation to take, whatever the order
     saturated = {**record, "imagined_score": [0.5, 0.0, 0.0, 1.0, 1.0], "action_distance": [0.0, 1.0, 2.0, 3.0, 4.0]}
     assert np.isnan(summarize_candidate_outcomes([saturated])["extreme_score_distance_correlation"])
+    for decisions in ([saturated, record], [record, saturated]):  # skipped, not a NaN in the median
+        assert summarize_candidate_outcomes(decisions)["extreme_score_distance_correlation"] == pytest.approx(-0.5)
     assert plot_candidate_outcomes([split, none], tmp_path / "outcomes.png").stat().st_size > 0  # with the success-by-quarter panel
 
 
