@@ -11,6 +11,7 @@ from torchrl_dalir.checkpoints import load_world_model, store_selection
 from torchrl_dalir.evaluation import calibration
 from torchrl_dalir.modules import ScorerEnsemble, TaskCompletionScorer
 from torchrl_dalir.objectives import ImaginedCompletionLoss
+from torchrl_dalir.reranking.random_choice import RandomCandidateActor
 from torchrl_dalir.reranking.selection import SelectionConfig, select
 
 # one decision, 3 ensemble members, 4 candidates (0 is the clean one)
@@ -176,6 +177,7 @@ def test_calibration_reads_only_validation_episodes_and_stores_its_choice(traine
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert RerankingActor.from_checkpoints(policy_path, path, selection=grid[3]).selection == grid[3]
+        RandomCandidateActor.from_checkpoints(policy_path, path)  # the random control ignores the rule: no warning
     assert RerankingActor.from_checkpoints(policy_path, path, selection=SelectionConfig()).selection == SelectionConfig()
     # with the default evidence rule, 2 episodes won and none lost (one-sided p = 0.25) do not leave the base policy
     record = calibration.calibrate(policy_path, path, grid=grid, rule="margin", episodes=10, seed=1, write=False)

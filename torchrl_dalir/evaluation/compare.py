@@ -95,8 +95,7 @@ def evaluate_checkpoints(
     if world_model_path is not None:  # fails now, not after the base policy's episodes
         stored = load_world_model(world_model_path, policy=policy).selection
     reranking = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
-    rules = {"dalir": {"selection": selection} if selection is not None else {}, "argmax": {"selection": SelectionConfig()},
-             "random": {"selection": SelectionConfig()}}  # ignored by the random pick; spares it the stored rule's warning
+    rules = {"dalir": {"selection": selection} if selection is not None else {}, "argmax": {"selection": SelectionConfig()}, "random": {}}
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}
     rows, by_rule = {}, {}  # DALI-R with the same rule on the same episodes gives the same row: run it once
     for method in methods:

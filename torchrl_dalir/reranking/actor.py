@@ -82,6 +82,8 @@ class RerankingActor(TensorDictModuleBase):
         True
     """
 
+    uses_selection = True  # chooses by its selection rule (a control that ignores the rule says False)
+
     def __init__(
         self,
         policy: ChunkPolicy3D,
@@ -146,7 +148,7 @@ class RerankingActor(TensorDictModuleBase):
         candidate (calibration found no rule that beat the base policy) is used with a warning,
         since the actor then executes the base policy's chunks at DALI-R's cost."""
         parts = load_world_model(world_model_path, device, policy=policy)
-        if "selection" not in kwargs and parts.selection.keeps_clean:
+        if cls.uses_selection and "selection" not in kwargs and parts.selection.keeps_clean:
             warnings.warn(f"{world_model_path}: the calibrated rule {parts.selection.name} always keeps the clean candidate, so this actor "
                           "executes the base policy's chunks; pass selection= to rerank anyway", stacklevel=2)
         kwargs.setdefault("selection", parts.selection)

@@ -26,8 +26,10 @@ class RandomCandidateActor(RerankingActor):
         True
     """
 
+    uses_selection = False  # always the arg-max of the random draws
+
     def __init__(self, *args, **kwargs):
-        kwargs.pop("selection", None)  # always the arg-max of the random draws
+        kwargs.pop("selection", None)
         super().__init__(*args, **kwargs)
 
     @torch.no_grad()
