@@ -18,7 +18,7 @@ from statistics import median
 
 import numpy as np
 import torch
-from scipy.stats import mannwhitneyu, spearmanr
+from scipy.stats import mannwhitneyu, rankdata, spearmanr
 from tqdm.auto import tqdm
 
 from torchrl_dalir import keys
@@ -224,14 +224,12 @@ def success_by_score_rank(records: list[dict], score: str = "imagined_score", bi
         if len(scores) < bins:
             raise ValueError(f"a decision has {len(scores)} candidates, fewer than bins={bins}")
         group_of_position = np.arange(len(scores)) * bins // len(scores)
-        order = np.argsort(scores, kind="stable")
-        start = 0
-        for value in np.unique(scores):  # ascending: the tie group of `value` holds positions start .. start + n - 1
-            members = order[start:start + np.count_nonzero(scores == value)]
-            weight = np.bincount(group_of_position[start:start + len(members)], minlength=bins) / len(members)
-            successes += weight * success[members].sum()
-            counts += weight * len(members)
-            start += len(members)
+        # a candidate and those tied with it hold positions first .. last - 1 (0: the lowest score)
+        firsts, lasts = rankdata(scores, "min").astype(int) - 1, rankdata(scores, "max").astype(int)
+        for first, last, succeeded in zip(firsts, lasts, success):
+            weight = np.bincount(group_of_position[first:last], minlength=bins) / (last - first)
+            successes += weight * succeeded
+            counts += weight
     return [float(s / c) if c else float("nan") for s, c in zip(successes, counts)]
 
 
