@@ -2,7 +2,7 @@
 
     python examples/table3_diagnostics.py part=a out=outputs/pipeline                 # Pen and disassemble, seed 0
     python examples/table3_diagnostics.py part=b out=outputs/pipeline mixed_sizes=[100,200,0]
-    python examples/table3_diagnostics.py part=a tasks=[disassemble] seeds=[0,1] overrides=[world_model.encoder=frozen]
+    python examples/table3_diagnostics.py part=a tasks=[disassemble] seeds=[0,1] overrides=[world_model.encoder=finetune]
 
 Each (task, seed) needs the main job's run (``examples/train_dp3_wm.py``, run here first if it is
 missing; finished stages are skipped), which gives the base policy and DALI-R with the scorer of
@@ -49,7 +49,7 @@ class Config:
     policy: str = "fm"
     preset: str = "cpu"
     out: str = "outputs/pipeline"  # the main job's output folder, shared by every run
-    overrides: list[str] = field(default_factory=list)  # passed to every run, e.g. [world_model.encoder=frozen]
+    overrides: list[str] = field(default_factory=list)  # passed to every run, e.g. [world_model.encoder=finetune]
     jobs: int = 2  # runs side by side
     threads: int = 1  # torch threads per run
     table_out: str = "outputs/table3"

@@ -1,4 +1,4 @@
-"""DALI-R end to end on one task: demos -> base policy -> mixed data -> world model -> calibration -> evaluation.
+"""DALI-R end to end on one task: demos -> base policy -> mixed data -> exploration -> world model -> calibration -> evaluation.
 
     python examples/train_dp3_wm.py                                  # disassemble, cpu preset
     python examples/train_dp3_wm.py task=shelf-place policy=dp seed=1

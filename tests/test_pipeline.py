@@ -143,3 +143,28 @@ def test_main_job_resumes_a_dataset_killed_before_its_complete_mark(tmp_path, mo
     assert TrajectoryDataset.load(demos).num_trajectories == 2
     run_example("train_dp3_wm.py", args, monkeypatch)
     assert "[demos] done before" in capsys.readouterr().out
+
+
+def test_the_cpu_preset_is_the_reranking_protocol_and_run_commands_name_only_departures():
+    from torchrl_dalir.config import config_dict, parse_config
+    from torchrl_dalir.pipeline import PRESETS, PipelineConfig
+    from torchrl_dalir.pipeline.records import command
+
+    def run(*overrides):
+        cfg = parse_config(PipelineConfig, ["task=stick-pull", "seed=1", "policy=dp", "out=/tmp/x", *overrides], PRESETS)
+        return cfg, json.loads(json.dumps(config_dict(cfg)))
+
+    cfg, config = run()
+    protocol = (cfg.policy_training.num_steps, cfg.world_model.encoder, cfg.exploration_rollouts, cfg.calibration_confirm_episodes)
+    assert protocol == (1000, "frozen", 60, 30)
+    assert cfg.run_name() == "dp_seed1_frozen+explore_dp_seed1"  # the folder of runs that set the protocol by hand
+    head = "python examples/train_dp3_wm.py task=stick-pull seed=1 policy=dp preset=cpu"
+    assert command(config) == head
+    # a run of the earlier protocol names what it set apart from today's preset
+    _, old = run("policy_training.num_steps=2000", "world_model.encoder=finetune", "exploration_rollouts=0", "calibration_confirm_episodes=0")
+    assert command(old) == (f"{head} exploration_rollouts=0 calibration_confirm_episodes=0 "
+                            "policy_training.num_steps=2000 world_model.encoder=finetune")
+    # exploration data named by hand (none collected) is a departure too
+    _, by_hand = run("exploration_rollouts=0", "world_model.extra_data=[explore_dp_seed1]")
+    assert command(by_hand) == f"{head} exploration_rollouts=0 world_model.extra_data=[explore_dp_seed1]"
+    assert parse_config(PipelineConfig, ["preset=paper"], PRESETS).exploration_rollouts == 0

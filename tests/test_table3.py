@@ -35,7 +35,7 @@ def fake_runs(outcomes):
 
 
 def test_every_variant_is_its_own_main_job_run_evaluated_by_argmax_alone(table3):
-    cfg = parse_config(table3.Config, ["part=b", "mixed_sizes=[100,0]", "overrides=[world_model.encoder=frozen]", "out=/tmp/t3"])
+    cfg = parse_config(table3.Config, ["part=b", "mixed_sizes=[100,0]", "overrides=[world_model.encoder=finetune]", "out=/tmp/t3"])
     assert cfg.tasks == ["disassemble"]
     assert list(table3.variants(cfg)) == ["", "mixed100"]
     names = {}
@@ -43,10 +43,10 @@ def test_every_variant_is_its_own_main_job_run_evaluated_by_argmax_alone(table3)
         arguments = table3.run_arguments(cfg, "disassemble", 1, variant)
         pipeline = parse_config(PipelineConfig, arguments, PRESETS)
         names[variant] = pipeline.run_name()
-        assert pipeline.world_model.encoder == "frozen"
+        assert pipeline.world_model.encoder == "finetune"  # the override, over the cpu preset's frozen
         assert pipeline.eval_methods == (["argmax"] if variant else ["base", "dalir", "argmax", "random"])
         assert pipeline.calibration_episodes == (0 if variant else 30)
-    assert names == {"": "fm_seed1_frozen", "mixed100": "fm_seed1_frozen_mixed100"}
+    assert names == {"": "fm_seed1+explore_fm_seed1", "mixed100": "fm_seed1_mixed100+explore_fm_seed1"}
     part_a = parse_config(table3.Config, ["part=a"])
     assert part_a.tasks == ["pen", "disassemble"]
     assert "world_model.scorer_target=dense_reward" in table3.run_arguments(part_a, "pen", 0, "dense_reward")

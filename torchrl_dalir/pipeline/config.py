@@ -39,7 +39,7 @@ class PipelineConfig:
     base_policy_rollouts: trajectories of the trained base policy added to the mixed data.
     exploration_rollouts: trajectories of the base policy acting on point-dropout views (one of
         DALI-R's candidates at random per decision), collected as ``explore_<policy>_seed<seed>``
-        and added to the world model's data (0: none, the paper's data).
+        and added to the world model's data (0: none, the paper's data; the ``cpu`` preset: 60).
     eval_episodes, eval_seed: the test episodes, shared by every method (``eval_methods``: the
         base policy, DALI-R with the calibrated rule, with the paper's arg-max, and the
         random-candidate control; see :func:`~torchrl_dalir.evaluation.compare.evaluate_checkpoints`).
@@ -50,7 +50,8 @@ class PipelineConfig:
         sign-test p-value on the validation episodes; 1: the setting with the most successes).
     calibration_confirm_episodes: with ``n > 0``, a chosen setting other than the base policy must
         win again on ``n`` fresh validation episodes (evaluation seed ``calibration_seed + 1``)
-        to be kept (:func:`~torchrl_dalir.evaluation.calibration.calibrate`); 0 (the default) skips it.
+        to be kept (:func:`~torchrl_dalir.evaluation.calibration.calibrate`); 0 skips it (the ``cpu``
+        preset: 30).
     num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability.
     redo: stages to run again from scratch even if their artifact exists
         (``redo=[world_model]``); later stages are redone too, and each previous run's
@@ -155,6 +156,7 @@ def _nest(preset: str) -> dict:
 
 PRESETS: dict[str, dict] = {
     "paper": {**_nest("paper"), "base_policy_rollouts": 200, "eval_episodes": 100},
-    "cpu": _nest("cpu"),
+    # the reranking protocol (README, Results): exploration data, a chosen rule confirmed on fresh episodes
+    "cpu": {**_nest("cpu"), "exploration_rollouts": 60, "calibration_confirm_episodes": 30},
     "smoke": {**_nest("smoke"), "base_policy_rollouts": 2, "eval_episodes": 2, "num_candidates": 4, "calibration_episodes": 1},
 }

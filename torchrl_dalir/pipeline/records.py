@@ -49,8 +49,9 @@ def command(config: dict) -> str:
     default = json.loads(json.dumps(default))  # as the run's results.json holds it (tuples become lists)
     own, base = _flatten(config), _flatten(default)
     explore = f"explore_{config['policy']}_seed{config['seed']}"
-    if config.get("exploration_rollouts"):  # the exploration data joins the world model's data by itself
-        own["world_model.extra_data"] = [name for name in own.get("world_model.extra_data", []) if name != explore]
+    for flat in (own, base):  # the exploration data joins the world model's data by itself
+        if flat.get("exploration_rollouts"):
+            flat["world_model.extra_data"] = [name for name in flat.get("world_model.extra_data", []) if name != explore]
     changed = [f"{key}={_cli(value)}" for key, value in own.items()
                if key in base and value != base[key]  # (a setting that no longer exists is left out)
                and (key.rsplit(".", 1)[-1] not in _DERIVED if "." in key else key not in _NOT_RESULTS)]
