@@ -98,13 +98,16 @@ def table_a(runs: list[dict], tasks: list[str]) -> list[dict]:
 
 
 def table_b(runs: list[dict], cfg: Config) -> list[dict]:
-    """Per task and data size: held-out latent MSE (and the "no change" predictor's) and DALI-R's success, per seed."""
+    """Per task and data size: held-out latent MSE (and the "no change" predictor's) and DALI-R's
+    success, per seed, beside the base policy's (the same policy for every size)."""
     rows = []
     for task in cfg.tasks:
+        base = [r["success"][BASE] for r in runs if r["task"] == task and r["variant"] == ""]
         for n in cfg.mixed_sizes:
             chosen = [r for r in runs if r["task"] == task and r["variant"] == (f"mixed{n}" if n else "")]
             rows.append({"task": task, "mixed_trajectories": n or "all", "wm_mse": [r["metrics"]["wm_mse"] for r in chosen],
-                         "no_change_mse": [r["metrics"]["no_change_mse"] for r in chosen], "success": [r["success"][ARGMAX] for r in chosen]})
+                         "no_change_mse": [r["metrics"]["no_change_mse"] for r in chosen], "base": base,
+                         "success": [r["success"][ARGMAX] for r in chosen]})
     return rows
 
 
@@ -117,10 +120,11 @@ def markdown(cfg: Config, table: list[dict], episodes: int) -> str:
             cells = [100 * mean(row[key]) for row in table]
             lines.append(f"| {label} | " + " | ".join(f"{c:.1f}" for c in cells) + f" | {mean(cells):.1f} |")
         return "\n".join(lines) + footer
-    lines = ["| task | mixed trajectories | held-out latent MSE | no-change MSE | success (%) |", "| --- | --- | --- | --- | --- |"]
+    lines = ["| task | mixed trajectories | held-out latent MSE | no-change MSE | base policy (%) | DALI-R (%) |",
+             "| --- | --- | --- | --- | --- | --- |"]
     for row in table:
         lines.append(f"| {row['task']} | {row['mixed_trajectories']} | {mean(row['wm_mse']):.5f} | {mean(row['no_change_mse']):.5f} | "
-                     f"{100 * mean(row['success']):.1f} |")
+                     f"{100 * mean(row['base']):.1f} | {100 * mean(row['success']):.1f} |")
     return "\n".join(lines) + footer
 
 

@@ -71,7 +71,7 @@ def test_table_a_puts_base_sparse_and_dense_side_by_side(table3, tmp_path, monke
 
 
 def test_table_b_reports_mse_and_success_per_data_size_mean_over_seeds(table3, tmp_path, monkeypatch):
-    outcomes = {("disassemble", s, v): (0.8, rate, mse) for s, v, rate, mse in [
+    outcomes = {("disassemble", s, v): (0.8 if not v else None, rate, mse) for s, v, rate, mse in [  # (a variant runs no base policy)
         (0, "", 0.86, 0.0010), (1, "", 0.84, 0.0012), (0, "mixed100", 0.80, 0.0030), (1, "mixed100", 0.78, 0.0034)]}
     monkeypatch.setattr(table3, "run", fake_runs(outcomes))
     table3.main(["part=b", "seeds=[0,1]", "mixed_sizes=[100,0]", f"table_out={tmp_path}"])
@@ -79,5 +79,6 @@ def test_table_b_reports_mse_and_success_per_data_size_mean_over_seeds(table3, t
     assert [(r["mixed_trajectories"], r["success"], r["wm_mse"]) for r in rows] == [(100, [0.80, 0.78], [0.0030, 0.0034]),
                                                                                    ("all", [0.86, 0.84], [0.0010, 0.0012])]
     text = (tmp_path / "table3b.md").read_text()
-    assert "| disassemble | 100 | 0.00320 | 0.01000 | 79.0 |" in text and "| disassemble | all | 0.00110 | 0.01000 | 85.0 |" in text
+    assert all(r["base"] == [0.8, 0.8] for r in rows)  # the main runs' base policy, for every size
+    assert "| disassemble | 100 | 0.00320 | 0.01000 | 80.0 | 79.0 |" in text and "| disassemble | all | 0.00110 | 0.01000 | 80.0 | 85.0 |" in text
     assert (tmp_path / "table3b.png").stat().st_size > 0

@@ -115,14 +115,17 @@ def plot_data_scale(table: list[dict], path: str | Path, title: str = "Mixed-qua
     """Held-out latent MSE (left) and DALI-R's success (right) against the number of training
     trajectories, one line per task (paper Table 3b). ``table`` rows: ``task``,
     ``mixed_trajectories`` (a count or ``"all"``, in increasing order per task) and per-seed lists
-    ``wm_mse`` and ``success``; means over seeds are drawn, with one dot per seed."""
+    ``wm_mse`` and ``success``; means over seeds are drawn, with one dot per seed, and the base
+    policy's mean success (``base``, if the rows have it) as a dashed line."""
     fig, axes = plt.subplots(1, 2, figsize=(7.5, 3.2), dpi=90)
     for task in dict.fromkeys(row["task"] for row in table):
         rows = [row for row in table if row["task"] == task]
         x = np.arange(len(rows))
         for ax, key, scale in ((axes[0], "wm_mse", 1), (axes[1], "success", 100)):
             values = [scale * np.asarray(row[key]) for row in rows]
-            ax.plot(x, [v.mean() for v in values], marker="o", label=task)
+            line, = ax.plot(x, [v.mean() for v in values], marker="o", label=task)
+            if key == "success" and rows[0].get("base"):
+                ax.axhline(100 * np.mean(rows[0]["base"]), color=line.get_color(), linestyle="--", label=f"{task}: base policy")
             for i, v in enumerate(values):
                 ax.scatter(np.full(len(v), i), v, color="k", s=8, zorder=3)
             ax.set_xticks(x, [str(row["mixed_trajectories"]) for row in rows])
