@@ -28,7 +28,7 @@ from torchrl_dalir.utils import atomic_write, writable_dir
 @dataclass
 class Config:
     policy_checkpoint: str = "outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"
-    world_model: str = "outputs/pipeline/world_models/fm/disassemble/seed0/world_model.pt"
+    world_model: str = "outputs/pipeline/world_models/fm/disassemble/seed0_frozen+explore_fm_seed0/world_model.pt"
     episodes: int = 30
     seed: int = VALIDATION_SEED  # validation episodes: any evaluation seed but the test seed
     test_seed: int = TEST_SEED  # the evaluation seed of the episodes you report: refused here

@@ -35,7 +35,7 @@ from torchrl_dalir.utils import atomic_write, writable_dir
 @dataclass
 class Config:
     policy_checkpoint: str = "outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"
-    world_model: str = "outputs/pipeline/world_models/fm/disassemble/seed0/world_model.pt"
+    world_model: str = "outputs/pipeline/world_models/fm/disassemble/seed0_frozen+explore_fm_seed0/world_model.pt"
     episodes: int = 5
     decisions: int = 10  # the first decisions of each episode
     stride: int = 1  # analyse every stride-th of them (the others just follow the base policy)

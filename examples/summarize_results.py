@@ -34,6 +34,7 @@ from torchrl_dalir.config import parse_config
 from torchrl_dalir.evaluation.compare import METHODS, sign_test
 from torchrl_dalir.evaluation.paper import TABLE1, TABLE1_TASKS
 from torchrl_dalir.evaluation.plots import plot_success_by_task
+from torchrl_dalir.pipeline import PRESETS, PipelineConfig
 from torchrl_dalir.pipeline.records import (
     PAPER,
     discordant,
@@ -41,8 +42,11 @@ from torchrl_dalir.pipeline.records import (
     merge_records,
     records_from_runs,
     save_records,
+    variant_label,
 )
 from torchrl_dalir.utils import atomic_write
+
+DEFAULT_VARIANT = variant_label(parse_config(PipelineConfig, [], PRESETS).run_name(), "fm", 0)  # the cpu preset's: frozen+explore
 
 TRUSTED = (("base", "base policy"), ("dalir", "DALI-R, calibrated rule"), ("argmax", "DALI-R, arg-max (paper)"), ("random", "random candidate"))
 
@@ -54,7 +58,7 @@ class Config:
     save_records: str | None = None  # write a record of every run under out here (e.g. docs/results/runs)
     run_commit: str | None = None  # the commit that made the runs under out, for results that do not name it
     trusted_json: str | None = None  # also write the trusted-selection data here (e.g. docs/results/trusted_selection.json)
-    variant: str = PAPER  # the world-model variant of the trusted-selection table and Table 1 (e.g. frozen+explore)
+    variant: str = DEFAULT_VARIANT  # the world-model variant of the trusted-selection table and Table 1 (paper: the paper's world model)
     tasks: list[str] = field(default_factory=list)  # the trusted-selection table's tasks (all if empty)
     table1_json: str | None = None  # also build the paper's Table 1 and write its data here (e.g. docs/results/table1.json)
 

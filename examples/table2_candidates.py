@@ -43,7 +43,7 @@ GRIPPER_DIMS = {"metaworld": [3], "adroit": []}  # MetaWorld actions are (dx, dy
 @dataclass
 class Config:
     policies: list[str] = field(default_factory=lambda: ["outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"])
-    world_models: list[str] = field(default_factory=lambda: ["outputs/pipeline/world_models/fm/disassemble/seed0/world_model.pt"])
+    world_models: list[str] = field(default_factory=lambda: ["outputs/pipeline/world_models/fm/disassemble/seed0_frozen+explore_fm_seed0/world_model.pt"])
     sources: list[str] = field(default_factory=lambda: ["dropout", "noise", *SEARCH_SOURCES])  # among SOURCES
     episodes: int = 50
     seed: int = 0  # the evaluation seed: episodes never overlap data-generation episodes

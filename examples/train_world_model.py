@@ -5,7 +5,8 @@
 
 (under torchrun the trainings are data-parallel, the batch sizes global, and rank 0 alone writes and prints).
 
-Reads ``<data>/<task>/mixed``; writes ``<out>/<task>/seed<seed>/world_model.pt`` with the
+Reads ``<data>/<task>/mixed``; writes ``<out>/<task>/seed<seed><variant>/world_model.pt`` (``seed0_frozen``
+under the ``cpu`` preset, which keeps the policy's encoder frozen) with the
 held-out metrics (scorer Brier score and calibration error, world-model MSE next to the
 "no change" predictor), which it prints.
 """

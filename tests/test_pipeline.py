@@ -25,6 +25,8 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     sweep = json.loads((tmp_path / "sweep.json").read_text())["runs"]
     assert [(r["task"], r["seed"], r["exit_code"]) for r in sweep] == [("reach", 0, 0)]
     assert "[evaluation]" in (tmp_path / "logs" / f"reach_{policy}_seed0.log").read_text()
+    # its summary's trusted-selection table is of the runs' own world-model variant (smoke: the paper's)
+    assert json.loads((tmp_path / "trusted_selection.json").read_text())["variant"] == "paper"
     results = tmp_path / "results" / "reach" / f"{policy}_seed0"
     data = json.loads((results / "results.json").read_text())
     assert list(data["success"]) == ["base policy", "DALI-R", "DALI-R argmax", "random candidate"]
@@ -164,7 +166,35 @@ def test_the_cpu_preset_is_the_reranking_protocol_and_run_commands_name_only_dep
     _, old = run("policy_training.num_steps=2000", "world_model.encoder=finetune", "exploration_rollouts=0", "calibration_confirm_episodes=0")
     assert command(old) == (f"{head} exploration_rollouts=0 calibration_confirm_episodes=0 "
                             "policy_training.num_steps=2000 world_model.encoder=finetune")
+    # a run made before a setting existed ran at the value it was added with (here: no exploration, no confirmation)
+    older = {key: value for key, value in old.items() if key not in ("exploration_rollouts", "calibration_confirm_episodes")}
+    assert command(older) == command(old)
     # exploration data named by hand (none collected) is a departure too
     _, by_hand = run("exploration_rollouts=0", "world_model.extra_data=[explore_dp_seed1]")
     assert command(by_hand) == f"{head} exploration_rollouts=0 world_model.extra_data=[explore_dp_seed1]"
     assert parse_config(PipelineConfig, ["preset=paper"], PRESETS).exploration_rollouts == 0
+
+
+def test_a_training_stage_refuses_a_checkpoint_trained_with_other_settings(tmp_path):
+    from torchrl_dalir.checkpoints import training_finished
+    from torchrl_dalir.config import config_dict, parse_config
+    from torchrl_dalir.pipeline import PRESETS, PipelineConfig
+    from torchrl_dalir.pipeline.run import trained_as_asked
+
+    def job(*overrides):
+        return parse_config(PipelineConfig, ["preset=smoke", "task=reach", "policy=dp", f"out={tmp_path}", *overrides], PRESETS)
+
+    trained = job().policy_training
+    assert trained.model.kind == "dp"  # named by the job's policy, before any training
+    path = tmp_path / "checkpoint.pt"
+    assert not trained_as_asked("policy", trained, training_finished)(path)  # nothing yet: train
+    torch.save({"config": config_dict(trained), "step": 30, "num_steps": 30}, path)
+    assert trained_as_asked("policy", trained, training_finished)(path)
+    # where it writes, its device and logging do not matter; what it learns does
+    assert trained_as_asked("policy", job("device=cuda", "policy_training.log_every=7").policy_training, training_finished)(path)
+    with pytest.raises(ValueError, match=r"trained with num_steps=30 \(this job: 60\): pass redo=\[policy\]"):
+        trained_as_asked("policy", job("policy_training.num_steps=60").policy_training, training_finished)(path)
+    with pytest.raises(ValueError, match=r"model=.*'kind': 'dp'.*\(this job: .*'kind': 'fm'"):
+        trained_as_asked("policy", job("policy=fm").policy_training, training_finished)(path)
+    torch.save({"config": config_dict(trained), "step": 10, "num_steps": 30}, path)  # interrupted: resumed, not refused
+    assert not trained_as_asked("policy", trained, training_finished)(path)

@@ -55,7 +55,7 @@ class WorldModelCheckpoint:
         held_out_trajectories: the mixed data's trajectories held out of training.
 
     Example:
-        >>> parts = load_world_model("outputs/world_models/disassemble/seed0/world_model.pt")  # doctest: +SKIP
+        >>> parts = load_world_model("outputs/world_models/disassemble/seed0_frozen/world_model.pt")  # doctest: +SKIP
         >>> parts.selection.name, parts.metrics["wm_mse"] < parts.metrics["no_change_mse"]  # doctest: +SKIP
         ('argmax(state)', True)
     """

@@ -96,10 +96,10 @@ class PipelineConfig:
         check_eval_seed(self.calibration_seed, "calibration_seed")
         for name in ("calibration_episodes", "calibration_confirm_episodes", "base_policy_rollouts", "exploration_rollouts", "seed", "demo_seed"):
             check_at_least(name, getattr(self, name), 0)
-        if self.calibration_confirm_episodes and self.calibration_seed + 1 == self.eval_seed:
+        if self.calibration_episodes and self.calibration_confirm_episodes and self.calibration_seed + 1 == self.eval_seed:
             raise ValueError(f"the confirmation's validation episodes (evaluation seed calibration_seed + 1 = {self.eval_seed}) "
                              "would be the test episodes: choose another calibration_seed")
-        if self.calibration_seed == self.eval_seed:
+        if self.calibration_episodes and self.calibration_seed == self.eval_seed:
             raise ValueError(f"calibration_seed must differ from eval_seed ({self.eval_seed}): the rule is chosen on validation, not test, episodes")
         check_choice("until", self.until, STAGES)
         unknown = set(self.redo) - set(STAGES)
@@ -115,6 +115,7 @@ class PipelineConfig:
                     raise ValueError(f"{stage}.{name}={getattr(config, name)!r} would be replaced by the main job's {value!r}, "
                                      f"which it derives from its own {DERIVED_FROM.get(name, name)}: set that instead")
                 setattr(config, name, value)
+            config.__post_init__()  # derived settings and checks again, with the job's values
         if self.exploration_rollouts > 0 and self.exploration_name() not in self.world_model.extra_data:
             self.world_model.extra_data = [*self.world_model.extra_data, self.exploration_name()]
 

@@ -47,7 +47,9 @@ def command(config: dict) -> str:
     head = {key: config[key] for key in ("task", "seed", "policy", "preset")}
     default = config_dict(parse_config(PipelineConfig, [f"{k}={v}" for k, v in {**head, "out": config["out"]}.items()], PRESETS))
     default = json.loads(json.dumps(default))  # as the run's results.json holds it (tuples become lists)
-    own, base = _flatten(config), _flatten(default)
+    base = _flatten(default)
+    # a setting that the run's code did not have yet ran at the value it was added with
+    own = {**_flatten(json.loads(json.dumps(config_dict(PipelineConfig())))), **_flatten(config)}
     explore = f"explore_{config['policy']}_seed{config['seed']}"
     for flat in (own, base):  # the exploration data joins the world model's data by itself
         if flat.get("exploration_rollouts"):

@@ -14,7 +14,8 @@ import time
 from functools import partial
 from pathlib import Path
 
-from torchrl_dalir.checkpoints import load_world_model, store_selection, training_finished
+from torchrl_dalir.checkpoints import load_world_model, safe_torch_load, store_selection, training_finished
+from torchrl_dalir.config import config_dict
 from torchrl_dalir.data import Source, collect
 from torchrl_dalir.data.storage import is_complete
 from torchrl_dalir.evaluation.calibration import GRIDS, calibrate
@@ -62,7 +63,8 @@ def run_pipeline(cfg: PipelineConfig) -> Path:
 
     # 2. The base policy learns from the demos alone (the data asymmetry).
     # (an interrupted training leaves a checkpoint behind: the stage resumes it)
-    stage("policy", cfg, policy_path, lambda: train_policy(cfg.policy_training), finished=training_finished)
+    stage("policy", cfg, policy_path, lambda: train_policy(cfg.policy_training),
+          finished=trained_as_asked("policy", cfg.policy_training, training_finished))
 
     # 3. Mixed-quality data: noisy experts and rollouts of the trained base policy, all labeled.
     base_rollouts = Source("base_policy", cfg.base_policy_rollouts, policy=partial(policy_actor, str(policy_path)), expert=False, history=2)
@@ -78,7 +80,8 @@ def run_pipeline(cfg: PipelineConfig) -> Path:
             cfg.task, data.task_dir() / cfg.exploration_name(), [explore], seed=2 * cfg.seed + 2, **common), finished=dataset_finished)
 
     # 4. Latent encoder, task-completion scorer and latent world model, the policy frozen.
-    stage("world_model", cfg, world_model_path, lambda: train_world_model(cfg.world_model))
+    stage("world_model", cfg, world_model_path, lambda: train_world_model(cfg.world_model),
+          finished=trained_as_asked("world_model", cfg.world_model, Path.exists))
 
     # 5. The selection rule's setting, chosen on validation episodes and stored in the world model.
     # (done only if the world model holds this calibration: a retrained world model is calibrated again)
@@ -94,6 +97,31 @@ def run_pipeline(cfg: PipelineConfig) -> Path:
     if cfg.until == STAGES[-1]:
         print((results / "results.md").read_text())
     return results
+
+
+# Settings that say where a training writes, on what device, or how it reports; not what it learns.
+NOT_LEARNED = frozenset({"out", "data", "device", "precision", "checkpoint_every", "log_every", "wandb", "progress", "preset", "policy_checkpoint"})
+
+
+def trained_as_asked(name: str, config, done) -> callable:
+    """The ``finished`` test of training stage ``name``: ``done(checkpoint)``, once the checkpoint
+    was trained with ``config``'s settings. A checkpoint trained with other settings (a folder of
+    an earlier preset, say: its name does not hold every setting) is refused, naming them, instead
+    of being used or resumed as if it were this job's."""
+    asked = json.loads(json.dumps(config_dict(config)))
+
+    def finished(path: Path) -> bool:
+        if not path.exists():
+            return False
+        stored = json.loads(json.dumps(safe_torch_load(path, f"{name} checkpoint").get("config") or {}))
+        differ = sorted(key for key in (asked.keys() & stored.keys()) - NOT_LEARNED if stored[key] != asked[key])
+        if differ:
+            settings = ", ".join(f"{key}={stored[key]!r} (this job: {asked[key]!r})" for key in differ)
+            raise ValueError(f"{path} was trained with {settings}: pass redo=[{name}] to train it again with this job's "
+                             "settings (the previous run is kept aside), or choose another out=")
+        return done(path)
+
+    return finished
 
 
 def dataset_finished(meta_path: Path) -> bool:

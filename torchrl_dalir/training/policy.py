@@ -59,6 +59,7 @@ class PolicyTrainingConfig:
     def __post_init__(self):
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("policy", self.policy, POLICY_KINDS)
+        self.model.kind = self.policy  # the backbone is named once, by ``policy``
         check_choice("precision", self.precision, PRECISIONS)
         for name, minimum in (("batch_size", 1), ("epochs", 1), ("num_steps", 0), ("checkpoint_every", 1), ("log_every", 1)):
             check_at_least(name, getattr(self, name), minimum)
@@ -108,7 +109,6 @@ def _loss_module(policy: ChunkPolicy3D):
 def train_policy(cfg: PolicyTrainingConfig) -> Path:
     """Trains (or resumes) a base policy on ``cfg.task``'s demos; returns the checkpoint path.
     Under torchrun, data-parallel over the ranks (only rank 0 writes)."""
-    cfg.model.kind = cfg.policy
     device = distributed.setup(cfg.device)
     torch.manual_seed(cfg.seed)
     demos = TrajectoryDataset.load(cfg.demos_dir(), task=cfg.task)

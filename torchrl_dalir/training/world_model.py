@@ -149,9 +149,10 @@ class WorldModelTrainingConfig:
 
 PRESETS: dict[str, dict] = {
     "paper": {},
-    # About 10 minutes on a 2-core CPU: the policy's encoder frozen (latents computed once; the
-    # fine-tuned encoder took ~30 min here), a smaller world model on smaller batches (a batch-512
-    # step of the paper's model takes ~0.6 s here).
+    # About 10 minutes on a 2-core CPU: the policy's encoder frozen (latents computed once, the
+    # scorer alone for 30 epochs; the fine-tuned encoder took ~30 min here, and `scorer_steps`
+    # applies to it only), a smaller world model on smaller batches (a batch-512 step of the
+    # paper's model takes ~0.6 s here).
     "cpu": {"encoder": "frozen", "scorer_steps": 1000, "wm_steps": 1500, "wm_batch_size": 256, "wm_hidden": 128},
     "smoke": {
         "scorer_steps": 20, "scorer_batch_size": 16, "wm_steps": 20, "wm_batch_size": 16, "wm_hidden": 32, "wm_layers": 1,
