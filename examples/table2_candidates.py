@@ -28,7 +28,7 @@ from pathlib import Path
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.envs import get_task
-from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints
+from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints, paired_sign_test, sign_test
 from torchrl_dalir.evaluation.plots import plot_success_by_task
 from torchrl_dalir.reranking import CleanObservation, GaussianObservationNoise, PointDropout, SearchConfig
 from torchrl_dalir.reranking.selection import SelectionConfig
@@ -98,9 +98,19 @@ def evaluate_run(index: int, policy_path: str, world_model_path: str, cfg: Confi
 
 
 def success_table(runs: list[dict], keys: list[str]) -> list[dict]:
-    """One row per task: every method's per-seed success rates (the input of :func:`plot_success_by_task`)."""
+    """One row per task: every method's per-seed success rates (the input of :func:`plot_success_by_task`)
+    and, per source, the test episodes that only the base policy / only the source solved, summed
+    over seeds, with the sign test (``vs_base``)."""
     tasks = list(dict.fromkeys(run["task"] for run in runs))
-    return [{"task": task, **{k: [r["methods"][k]["success_rate"] for r in runs if r["task"] == task] for k in keys}} for task in tasks]
+    rows = []
+    for task in tasks:
+        own = [r for r in runs if r["task"] == task]
+        row = {"task": task, **{k: [r["methods"][k]["success_rate"] for r in own] for k in keys}, "vs_base": {}}
+        for k in keys[1:]:
+            pairs = [paired_sign_test(*[[e["success"] for e in r["methods"][m]["records"]] for m in ("base", k)]) for r in own]
+            row["vs_base"][k] = sign_test(sum(p["base_only"] for p in pairs), sum(p["dalir_only"] for p in pairs))
+        rows.append(row)
+    return rows
 
 
 def markdown(table: list[dict], keys: list[str], labels: dict[str, str]) -> str:
@@ -113,9 +123,11 @@ def markdown(table: list[dict], keys: list[str], labels: dict[str, str]) -> str:
     for k in keys:
         target = "none" if k == "base" else ("action chunk" if k in SEARCH_SOURCES else "policy input")
         cells = [mean(row[k]) for row in table]
-        lines.append(f"| {labels[k]} | {target} | " + " | ".join(f"{c:.1f}" for c in cells) + f" | {sum(cells) / len(cells):.1f} |")
+        paired = ["" if k == "base" else " ({base_only} / {dalir_only}, p = {p_value:.2f})".format(**row["vs_base"][k]) for row in table]
+        lines.append(f"| {labels[k]} | {target} | " + " | ".join(f"{c:.1f}{d}" for c, d in zip(cells, paired)) + f" | {sum(cells) / len(cells):.1f} |")
     seeds = sorted({len(row["base"]) for row in table})
-    return "\n".join(lines) + f"\n\nSeeds per task: {', '.join(map(str, seeds))}.\n"
+    return "\n".join(lines) + (f"\n\nSeeds per task: {', '.join(map(str, seeds))}. In brackets: the test episodes only the base "
+                              "policy / only the source solved, summed over seeds, and the two-sided sign test.\n")
 
 
 def main(argv: list[str]) -> None:

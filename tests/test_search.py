@@ -142,7 +142,8 @@ def test_table2_script_evaluates_every_source_on_the_same_episodes(tmp_path, mon
         calls.append({"policy": policy_path, "methods": methods, "candidates": candidates, "search": search, **kwargs})
         rate = {"stick-pull.pt": 0.5, "reach.pt": 0.25}[Path(policy_path).name] + 0.05 * (len(calls) % 4)
         name = compare.BASE if methods == ["base"] else compare.DALIR
-        return {name: {"success_rate": rate, "episodes": kwargs["episodes"], "seconds": 0.0, "records": []}}
+        records = [{"success": (len(calls) + e) % 2 == 0} for e in range(kwargs["episodes"])]  # alternate by call
+        return {name: {"success_rate": rate, "episodes": kwargs["episodes"], "seconds": 0.0, "records": records}}
 
     monkeypatch.setattr(compare, "evaluate_checkpoints", fake_evaluate)
     monkeypatch.setattr(checkpoints, "load_policy", lambda path, device: SimpleNamespace(task=Path(path).stem))
@@ -161,6 +162,10 @@ def test_table2_script_evaluates_every_source_on_the_same_episodes(tmp_path, mon
     assert data["runs"][0]["methods"]["cem"]["search"].startswith("cem(iterations=2")
     text = (tmp_path / "table2.md").read_text()
     assert "| point dropout | policy input |" in text and "| CEM | action chunk |" in text
+    # paired with the base policy on the same episodes: base (call 1) solved episode 1, dropout (call 2) episodes 0 and 2
+    assert data["table"][0]["vs_base"]["dropout"] == {"base_only": 1, "dalir_only": 2, "p_value": 1.0}
+    assert data["table"][0]["vs_base"]["noise"] == {"base_only": 0, "dalir_only": 0, "p_value": 1.0}
+    assert "| 60.0 (1 / 2, p = 1.00) |" in text
     assert (tmp_path / "table2.png").stat().st_size > 0
     before = json.loads((tmp_path / "table2.json").read_text())
     (tmp_path / "parts" / "1_reach" / "cem.json").unlink()  # as if interrupted while measuring reach's CEM
