@@ -123,7 +123,7 @@ def markdown(table: list[dict], keys: list[str], labels: dict[str, str]) -> str:
     for k in keys:
         target = "none" if k == "base" else ("action chunk" if k in SEARCH_SOURCES else "policy input")
         cells = [mean(row[k]) for row in table]
-        paired = ["" if k == "base" else " ({base_only} / {dalir_only}, p = {p_value:.2f})".format(**row["vs_base"][k]) for row in table]
+        paired = ["" if k == "base" else " ({base_only} / {dalir_only}, p = {p_value:.3f})".format(**row["vs_base"][k]) for row in table]
         lines.append(f"| {labels[k]} | {target} | " + " | ".join(f"{c:.1f}{d}" for c, d in zip(cells, paired)) + f" | {sum(cells) / len(cells):.1f} |")
     seeds = sorted({len(row["base"]) for row in table})
     return "\n".join(lines) + (f"\n\nSeeds per task: {', '.join(map(str, seeds))}. In brackets: the test episodes only the base "

@@ -165,7 +165,7 @@ def test_table2_script_evaluates_every_source_on_the_same_episodes(tmp_path, mon
     # paired with the base policy on the same episodes: base (call 1) solved episode 1, dropout (call 2) episodes 0 and 2
     assert data["table"][0]["vs_base"]["dropout"] == {"base_only": 1, "dalir_only": 2, "p_value": 1.0}
     assert data["table"][0]["vs_base"]["noise"] == {"base_only": 0, "dalir_only": 0, "p_value": 1.0}
-    assert "| 60.0 (1 / 2, p = 1.00) |" in text
+    assert "| 60.0 (1 / 2, p = 1.000) |" in text
     assert (tmp_path / "table2.png").stat().st_size > 0
     before = json.loads((tmp_path / "table2.json").read_text())
     (tmp_path / "parts" / "1_reach" / "cem.json").unlink()  # as if interrupted while measuring reach's CEM
