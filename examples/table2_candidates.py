@@ -14,7 +14,7 @@ is the action-space methods' starting point. The base policy runs once per pair,
 On MetaWorld the search leaves the gripper command as sampled (``keep_gripper``, as the paper does).
 
 Writes ``<out>/table2.md`` (success per task, mean over seeds, and the average),
-``<out>/table2.json`` (the same with every episode's record) and ``<out>/table2.png``.
+``<out>/table2.json`` (the same with every episode's outcome) and ``<out>/table2.png``.
 """
 
 from __future__ import annotations
@@ -113,6 +113,14 @@ def success_table(runs: list[dict], keys: list[str]) -> list[dict]:
     return rows
 
 
+def compact(run: dict) -> dict:
+    """A run with each method's episode records as one string of outcomes (``"0110..."``, in
+    episode order): the table's JSON stays small, and the pairing can be redone from it."""
+    methods = {name: {**{k: v for k, v in row.items() if k != "records"},
+                      "outcomes": "".join("1" if e["success"] else "0" for e in row["records"])} for name, row in run["methods"].items()}
+    return {**run, "methods": methods}
+
+
 def markdown(table: list[dict], keys: list[str], labels: dict[str, str]) -> str:
     """Success (%) per task, mean over seeds, and the average over tasks."""
     def mean(values):
@@ -145,7 +153,7 @@ def main(argv: list[str]) -> None:
     print(text)
     out = Path(cfg.out)
     atomic_write(out / "table2.md", text)
-    atomic_write(out / "table2.json", json.dumps({"config": config_dict(cfg), "table": table, "runs": runs}, indent=1))
+    atomic_write(out / "table2.json", json.dumps({"config": config_dict(cfg), "table": table, "runs": [compact(run) for run in runs]}, indent=1))
     plot_success_by_task(table, out / "table2.png", title="Where candidate diversity comes from",
                          methods=tuple((k, labels[k]) for k in keys))
 

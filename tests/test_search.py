@@ -160,6 +160,7 @@ def test_table2_script_evaluates_every_source_on_the_same_episodes(tmp_path, mon
     data = json.loads((tmp_path / "table2.json").read_text())
     assert [row["task"] for row in data["table"]] == ["stick-pull", "reach"]
     assert data["runs"][0]["methods"]["cem"]["search"].startswith("cem(iterations=2")
+    assert data["runs"][0]["methods"]["base"]["outcomes"] == "010" and data["runs"][0]["methods"]["dropout"]["outcomes"] == "101"
     text = (tmp_path / "table2.md").read_text()
     assert "| point dropout | policy input |" in text and "| CEM | action chunk |" in text
     # paired with the base policy on the same episodes: base (call 1) solved episode 1, dropout (call 2) episodes 0 and 2
