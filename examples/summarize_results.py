@@ -37,16 +37,16 @@ from torchrl_dalir.evaluation.plots import plot_success_by_task
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
 from torchrl_dalir.pipeline.records import (
     PAPER,
+    config_variant,
     discordant,
     load_records,
     merge_records,
     records_from_runs,
     save_records,
-    variant_label,
 )
 from torchrl_dalir.utils import atomic_write
 
-DEFAULT_VARIANT = variant_label(parse_config(PipelineConfig, [], PRESETS).run_name(), "fm", 0)  # the cpu preset's: frozen+explore
+DEFAULT_VARIANT = config_variant(parse_config(PipelineConfig, [], PRESETS))  # the cpu preset's: frozen+explore
 
 TRUSTED = (("base", "base policy"), ("dalir", "DALI-R, calibrated rule"), ("argmax", "DALI-R, arg-max (paper)"), ("random", "random candidate"))
 

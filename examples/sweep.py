@@ -28,7 +28,7 @@ from pathlib import Path
 
 from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
-from torchrl_dalir.pipeline.records import variant_label
+from torchrl_dalir.pipeline.records import config_variant
 from torchrl_dalir.utils import atomic_write, ray_runtime, run_logged
 
 EXAMPLES = Path(__file__).resolve().parent
@@ -82,8 +82,7 @@ def main(argv: list[str]) -> None:
         parse_config(PipelineConfig, run_arguments(cfg, *run), PRESETS)
     records = launch(cfg, runs)
     atomic_write(Path(cfg.out) / "sweep.json", json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))
-    first = parse_config(PipelineConfig, run_arguments(cfg, *runs[0]), PRESETS)
-    variant = variant_label(first.run_name(), first.policy, first.seed)  # the summary's tables are of the runs' world-model variant
+    variant = config_variant(parse_config(PipelineConfig, run_arguments(cfg, *runs[0]), PRESETS))  # the summary's tables are of the runs' variant
     subprocess.run([sys.executable, str(EXAMPLES / "summarize_results.py"), f"out={cfg.out}", f"variant={variant}"], check=True)
     failed = [r for r in records if r["exit_code"] != 0]
     if failed:

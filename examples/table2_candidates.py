@@ -30,6 +30,7 @@ from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.envs import get_task
 from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints, paired_sign_test, sign_test
 from torchrl_dalir.evaluation.plots import plot_success_by_task
+from torchrl_dalir.pipeline.records import outcome_string
 from torchrl_dalir.reranking import CleanObservation, GaussianObservationNoise, PointDropout, SearchConfig
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.utils import atomic_write
@@ -117,7 +118,7 @@ def compact(run: dict) -> dict:
     """A run with each method's episode records as one string of outcomes (``"0110..."``, in
     episode order): the table's JSON stays small, and the pairing can be redone from it."""
     methods = {name: {**{k: v for k, v in row.items() if k != "records"},
-                      "outcomes": "".join("1" if e["success"] else "0" for e in row["records"])} for name, row in run["methods"].items()}
+                      "outcomes": outcome_string(row["records"])} for name, row in run["methods"].items()}
     return {**run, "methods": methods}
 
 

@@ -40,6 +40,16 @@ def variant_label(run_name: str, policy: str, seed: int) -> str:
     return run_name.removeprefix(own[1:]).replace(own, "").lstrip("_") or PAPER
 
 
+def config_variant(cfg: PipelineConfig) -> str:
+    """The world-model variant (:func:`variant_label`) of the runs a main-job configuration makes."""
+    return variant_label(cfg.run_name(), cfg.policy, cfg.seed)
+
+
+def outcome_string(records: list[dict]) -> str:
+    """Episode records (each with ``success``) as one string of outcomes, ``"0110..."`` in episode order."""
+    return "".join("1" if r["success"] else "0" for r in records)
+
+
 def command(config: dict) -> str:
     """The main-job command line of a run of ``config`` (a ``results.json``'s ``config``): its
     task, seed, policy and preset, and every setting that differs from the preset. (It sets what
@@ -67,7 +77,7 @@ def run_record(result: dict, run: str, calibration: dict | None = None, commit: 
     config = result["config"]
     methods = {}
     for name, row in result["success"].items():
-        outcomes = "".join("1" if r["success"] else "0" for r in row["records"])
+        outcomes = outcome_string(row["records"])
         methods[SHORT[name]] = {"success_rate": row["success_rate"], "outcomes": outcomes,
                                 **({"selection": row["selection"]} if "selection" in row else {}), "seconds": row.get("seconds")}
     record = {
