@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import check_choice, parse_config
 from torchrl_dalir.data import Source, collect
 from torchrl_dalir.data.collection import BACKENDS
@@ -67,4 +68,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from torchrl_dalir import RerankingActor
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.evaluation import evaluate
@@ -80,4 +81,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

@@ -22,6 +22,7 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_dalir import RerankingActor, keys
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.evaluation.timing import median_ms
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
@@ -81,4 +82,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

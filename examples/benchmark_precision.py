@@ -22,6 +22,7 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_dalir import keys
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.modules import PolicyConfig, make_policy
 from torchrl_dalir.objectives import FlowMatchingLoss
@@ -80,4 +81,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

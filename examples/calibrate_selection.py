@@ -18,6 +18,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.evaluation.calibration import ALPHA, GRIDS, TEST_SEED, VALIDATION_SEED, calibrate
 from torchrl_dalir.evaluation.compare import check_evaluation_settings
@@ -73,4 +74,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

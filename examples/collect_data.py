@@ -16,6 +16,7 @@ from __future__ import annotations
 import sys
 import time
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.data import Source, TrajectoryDataset, collect
 from torchrl_dalir.data.config import PRESETS, CollectionConfig
@@ -48,4 +49,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 
 from torchrl_dalir import RerankingActor
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import check_at_least, config_dict, parse_config
 from torchrl_dalir.evaluation.calibration import VALIDATION_SEED
 from torchrl_dalir.evaluation.candidate_outcomes import candidate_outcomes, summarize_candidate_outcomes
@@ -75,4 +76,5 @@ def main(argv: list[str]) -> dict:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

@@ -20,6 +20,7 @@ import json
 import sys
 from dataclasses import dataclass
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.evaluation.compare import check_evaluation_settings, evaluate_checkpoints
 from torchrl_dalir.reranking.selection import SelectionConfig
@@ -68,4 +69,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.evaluation import evaluate
@@ -54,4 +55,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

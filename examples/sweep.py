@@ -26,6 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
 from torchrl_dalir.pipeline.records import config_variant
@@ -90,4 +91,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

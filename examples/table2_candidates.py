@@ -25,6 +25,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.envs import get_task
@@ -160,4 +161,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import mean
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.evaluation.compare import ARGMAX, BASE
 from torchrl_dalir.evaluation.plots import plot_data_scale, plot_success_by_task
@@ -153,4 +154,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import check_at_least, config_dict, parse_config
 from torchrl_dalir.data import import_dp3_zarr, write_dp3_zarr
 from torchrl_dalir.evaluation.plots import plot_metric_by_task
@@ -229,4 +230,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

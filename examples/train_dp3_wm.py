@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import sys
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig, run_pipeline
 
@@ -24,4 +25,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

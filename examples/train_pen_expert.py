@@ -37,6 +37,7 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 from tqdm import tqdm
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.checkpoints import safe_torch_load, save_checkpoint
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.experts.adroit_pen import DEFAULT_WEIGHTS, OBS_DIM, PenExpertPolicy, make_actor_mlp
@@ -297,4 +298,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

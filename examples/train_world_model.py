@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import sys
 
+from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.checkpoints import load_world_model
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.training import WORLD_MODEL_PRESETS, WorldModelTrainingConfig, distributed, train_world_model
@@ -31,4 +32,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    reuse_freed_memory()  # before any large tensor: re-executes under glibc malloc tunables
     main(sys.argv[1:])

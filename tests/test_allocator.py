@@ -1,0 +1,49 @@
+"""The examples' re-execution under glibc malloc tunables (``torchrl_dalir.allocator``)."""
+
+import os
+import platform
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from torchrl_dalir.allocator import MALLOC_TUNABLES, OPT_OUT, tuned_environment
+
+glibc_linux = pytest.mark.skipif(sys.platform != "linux" or platform.libc_ver()[0] != "glibc", reason="glibc tunables only")
+
+
+@glibc_linux
+def test_tuned_environment_adds_the_tunables_once():
+    assert tuned_environment({"PATH": "/bin"}) == {"PATH": "/bin", "GLIBC_TUNABLES": MALLOC_TUNABLES}
+    # the user's other tunables are kept
+    assert tuned_environment({"GLIBC_TUNABLES": "glibc.cpu.x86_shstk=off"})["GLIBC_TUNABLES"] == f"glibc.cpu.x86_shstk=off:{MALLOC_TUNABLES}"
+    # already set (by the user or by the re-execution itself), or opted out: nothing to do
+    assert tuned_environment({"GLIBC_TUNABLES": MALLOC_TUNABLES}) is None
+    assert tuned_environment({"GLIBC_TUNABLES": "glibc.malloc.mmap_threshold=1"}) is None
+    assert tuned_environment({OPT_OUT: "system"}) is None
+
+
+@glibc_linux
+@pytest.mark.parametrize("opt_out", [False, True])
+def test_a_script_re_executes_once_with_its_arguments(tmp_path, opt_out):
+    script = tmp_path / "script.py"
+    script.write_text(textwrap.dedent("""
+        import os, sys
+        print("start", os.getpid(), flush=True)
+        from torchrl_dalir.allocator import reuse_freed_memory
+        reuse_freed_memory()
+        print("main", os.getpid(), sys.argv[1:], os.environ.get("GLIBC_TUNABLES"), flush=True)
+    """))
+    env = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", OPT_OUT)}
+    if opt_out:
+        env[OPT_OUT] = "system"
+    out = subprocess.run([sys.executable, "-u", str(script), "a=1", "b=[2,3]"], env=env, capture_output=True, text=True, check=True).stdout.split("\n")
+    starts = [line for line in out if line.startswith("start")]
+    mains = [line for line in out if line.startswith("main")]
+    pid = starts[0].split()[1]
+    assert len(mains) == 1 and mains[0].startswith(f"main {pid} ['a=1', 'b=[2,3]']")  # the same process (execve), the same arguments
+    if opt_out:
+        assert len(starts) == 1 and mains[0].endswith("None")
+    else:
+        assert starts == [f"start {pid}"] * 2 and mains[0].endswith(MALLOC_TUNABLES)
