@@ -32,7 +32,7 @@ def test_a_script_re_executes_once_with_its_arguments(tmp_path, opt_out):
         import os, sys
         print("start", os.getpid(), flush=True)
         from torchrl_dalir.allocator import reuse_freed_memory
-        reuse_freed_memory()
+        reuse_freed_memory(__file__)
         print("main", os.getpid(), sys.argv[1:], os.environ.get("GLIBC_TUNABLES"), flush=True)
     """))
     env = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", OPT_OUT)}
@@ -47,3 +47,15 @@ def test_a_script_re_executes_once_with_its_arguments(tmp_path, opt_out):
         assert len(starts) == 1 and mains[0].endswith("None")
     else:
         assert starts == [f"start {pid}"] * 2 and mains[0].endswith(MALLOC_TUNABLES)
+
+
+@glibc_linux
+def test_a_script_run_inside_another_program_does_not_re_execute_it(tmp_path):
+    """A test runner (here a launcher) that runs an example's ``__main__`` block in its own process keeps running."""
+    script = tmp_path / "script.py"
+    script.write_text("from torchrl_dalir.allocator import reuse_freed_memory\nreuse_freed_memory(__file__)\nprint('ran')\n")
+    launcher = tmp_path / "launcher.py"
+    launcher.write_text(f"import os, runpy\nprint('launcher', os.getpid(), flush=True)\nrunpy.run_path({str(script)!r}, run_name='__main__')\nprint('after', flush=True)\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", OPT_OUT)}
+    out = subprocess.run([sys.executable, "-u", str(launcher)], env=env, capture_output=True, text=True, check=True).stdout.split()
+    assert out.count("launcher") == 1 and out[-2:] == ["ran", "after"]

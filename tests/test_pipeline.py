@@ -1,4 +1,5 @@
 import json
+import re
 import runpy
 import sys
 from pathlib import Path
@@ -24,7 +25,12 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
                              f"threads={torch.get_num_threads()}", f"overrides=[{','.join(quiet)}]"], monkeypatch)
     sweep = json.loads((tmp_path / "sweep.json").read_text())["runs"]
     assert [(r["task"], r["seed"], r["exit_code"]) for r in sweep] == [("reach", 0, 0)]
-    assert "[evaluation]" in (tmp_path / "logs" / f"reach_{policy}_seed0.log").read_text()
+    log = (tmp_path / "logs" / f"reach_{policy}_seed0.log").read_text()
+    # each stage's end names its time, artifact and the job's peak memory so far (which never falls)
+    ends = re.findall(r"^\[(\w+)\] \d+ s -> .+ \(peak memory (\d+\.\d) GiB, workers \d+\.\d GiB\)$", log, re.MULTILINE)
+    assert [stage for stage, _ in ends] == ["demos", "policy", "mixed", "world_model", "calibration", "evaluation"]
+    peaks = [float(peak) for _, peak in ends]
+    assert peaks == sorted(peaks) and peaks[0] > 0
     # its summary's trusted-selection table is of the runs' own world-model variant (smoke: the paper's)
     assert json.loads((tmp_path / "trusted_selection.json").read_text())["variant"] == "paper"
     results = tmp_path / "results" / "reach" / f"{policy}_seed0"

@@ -10,6 +10,7 @@ the previous runs aside. ``examples/train_dp3_wm.py`` is this function behind a 
 from __future__ import annotations
 
 import json
+import sys
 import time
 from functools import partial
 from pathlib import Path
@@ -43,7 +44,19 @@ def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exi
         return
     start = time.perf_counter()
     run()
-    print(f"[{name}] {time.perf_counter() - start:.0f} s -> {artifact}", flush=True)
+    print(f"[{name}] {time.perf_counter() - start:.0f} s -> {artifact} ({peak_memory()})", flush=True)
+
+
+def peak_memory() -> str:
+    """The job's high-water marks of resident memory so far: this process and its largest finished
+    child (collector workers); printed after each stage, so the stage that raised one shows."""
+    try:
+        import resource
+    except ImportError:  # not on POSIX
+        return "peak memory unknown"
+    unit = 2**30 if sys.platform == "darwin" else 2**20  # ru_maxrss is in bytes on macOS, KiB on Linux
+    gib = {who: resource.getrusage(who).ru_maxrss / unit for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)}
+    return f"peak memory {gib[resource.RUSAGE_SELF]:.1f} GiB, workers {gib[resource.RUSAGE_CHILDREN]:.1f} GiB"
 
 
 def run_pipeline(cfg: PipelineConfig) -> Path:
