@@ -13,6 +13,11 @@ from torchrl_dalir.allocator import MALLOC_TUNABLES, OPT_OUT, tuned_environment
 glibc_linux = pytest.mark.skipif(sys.platform != "linux" or platform.libc_ver()[0] != "glibc", reason="glibc tunables only")
 
 
+def untuned_environment() -> dict[str, str]:
+    """This process's environment without the tunables or the opt-out, as a user's shell would have it."""
+    return {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", OPT_OUT)}
+
+
 @glibc_linux
 def test_tuned_environment_adds_the_tunables_once():
     assert tuned_environment({"PATH": "/bin"}) == {"PATH": "/bin", "GLIBC_TUNABLES": MALLOC_TUNABLES}
@@ -35,7 +40,7 @@ def test_a_script_re_executes_once_with_its_arguments(tmp_path, opt_out):
         reuse_freed_memory(__file__)
         print("main", os.getpid(), sys.argv[1:], os.environ.get("GLIBC_TUNABLES"), flush=True)
     """))
-    env = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", OPT_OUT)}
+    env = untuned_environment()
     if opt_out:
         env[OPT_OUT] = "system"
     out = subprocess.run([sys.executable, "-u", str(script), "a=1", "b=[2,3]"], env=env, capture_output=True, text=True, check=True).stdout.split("\n")
@@ -56,6 +61,6 @@ def test_a_script_run_inside_another_program_does_not_re_execute_it(tmp_path):
     script.write_text("from torchrl_dalir.allocator import reuse_freed_memory\nreuse_freed_memory(__file__)\nprint('ran')\n")
     launcher = tmp_path / "launcher.py"
     launcher.write_text(f"import os, runpy\nprint('launcher', os.getpid(), flush=True)\nrunpy.run_path({str(script)!r}, run_name='__main__')\nprint('after', flush=True)\n")
-    env = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", OPT_OUT)}
+    env = untuned_environment()
     out = subprocess.run([sys.executable, "-u", str(launcher)], env=env, capture_output=True, text=True, check=True).stdout.split()
     assert out.count("launcher") == 1 and out[-2:] == ["ran", "after"]

@@ -55,8 +55,8 @@ def peak_memory() -> str:
     except ImportError:  # not on POSIX
         return "peak memory unknown"
     unit = 2**30 if sys.platform == "darwin" else 2**20  # ru_maxrss is in bytes on macOS, KiB on Linux
-    gib = {who: resource.getrusage(who).ru_maxrss / unit for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)}
-    return f"peak memory {gib[resource.RUSAGE_SELF]:.1f} GiB, workers {gib[resource.RUSAGE_CHILDREN]:.1f} GiB"
+    own, workers = (resource.getrusage(who).ru_maxrss / unit for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    return f"peak memory {own:.1f} GiB, workers {workers:.1f} GiB"
 
 
 def run_pipeline(cfg: PipelineConfig) -> Path:
