@@ -4,9 +4,11 @@
     python examples/benchmark_collection.py task=disassemble trajectories=40 workers=[1,2] backends=[local,ray]
 
 Collects the same noisy-expert trajectories once per backend and worker count into a scratch
-directory (the same rows every time) and prints env steps per second (kept trajectories' steps over
-the collection's wall time, process start-up included: with ``ray``, a local Ray instance starts
-unless ``ray_address`` names a cluster).
+directory (the same rows every time) and prints env steps per second: kept trajectories' steps over
+the collection's wall time, process start-up included (with ``ray``, a local Ray instance starts
+unless ``ray_address`` names a cluster), and over the time after the collector was built
+(``collecting_s``: without starting the worker processes, which a collection pays once per
+chunk; their shutdown is still in it).
 """
 
 from __future__ import annotations
@@ -57,12 +59,15 @@ def main(argv: list[str]) -> None:
             )
             seconds = time.perf_counter() - start
             steps = sum(s["env_steps"] for s in dataset.meta.shards)
+            collecting = sum(s["seconds"] for s in dataset.meta.shards)
             size = sum(f.stat().st_size for f in (scratch / "rows").rglob("*") if f.is_file())
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
         rows.append({"backend": backend, "workers": workers, "env_steps": steps, "seconds": round(seconds, 1), "steps_per_s": round(steps / seconds, 1),
+                     "collecting_s": round(collecting, 1), "collecting_steps_per_s": round(steps / collecting, 1),
                      "trajectories": cfg.trajectories, "bytes_per_trajectory": size // cfg.trajectories})
-        print(f"{cfg.task}: {backend}, {workers} worker(s): {steps} env steps in {seconds:.1f} s = {steps / seconds:.0f} steps/s; "
+        print(f"{cfg.task}: {backend}, {workers} worker(s): {steps} env steps in {seconds:.1f} s = {steps / seconds:.0f} steps/s "
+              f"({steps / collecting:.0f} steps/s after {seconds - collecting:.1f} s of start-up); "
               f"{size / cfg.trajectories / 2**20:.2f} MiB per trajectory on disk", flush=True)
     atomic_write(Path(cfg.out) / f"collection_{cfg.task}.json", json.dumps(rows, indent=1))
 
