@@ -2,13 +2,17 @@
 
     python examples/calibrate_selection.py policy_checkpoint=.../checkpoint.pt world_model=.../world_model.pt
     python examples/calibrate_selection.py ... episodes=50 write=false     # only report
+    python examples/calibrate_selection.py ... design=failures failures=10  # sized by the base policy's failures
 
 The base policy and every rule of the grid (``evaluation.calibration``: the margin rule's
 settings, then the other rules for comparison) run on the same validation episodes (evaluation
 seed ``seed``, never the test seed 0). The best setting (of ``rule``, if given) among those that
 beat the base policy with a one-sided sign-test p-value of at most ``alpha`` (otherwise the most
 conservative setting, the base policy itself) is written into the world-model checkpoint, which ``RerankingActor.from_checkpoints`` and ``examples/evaluate.py`` then use.
-Writes ``<out>/calibration.json`` and prints the table.
+``design=failures`` (``evaluation.calibration.calibrate_on_failures``) instead runs the base policy
+until it has failed ``failures`` times, screens every rule on those episodes and as many it
+solved, and confirms the most promising rule on fresh episodes sized the same way: it can see a
+gain where the base policy rarely fails. Writes ``<out>/calibration.json`` and prints the table.
 """
 
 from __future__ import annotations
@@ -20,10 +24,21 @@ from pathlib import Path
 
 from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import check_choice, config_dict, parse_config
-from torchrl_dalir.evaluation.calibration import ALPHA, GRIDS, TEST_SEED, VALIDATION_SEED, calibrate
+from torchrl_dalir.evaluation.calibration import (
+    ALPHA,
+    FAILURES,
+    GRIDS,
+    MAX_EPISODES,
+    TEST_SEED,
+    VALIDATION_SEED,
+    calibrate,
+    calibrate_on_failures,
+)
 from torchrl_dalir.evaluation.compare import check_evaluation_settings
 from torchrl_dalir.seeds import check_eval_seed
 from torchrl_dalir.utils import atomic_write, writable_dir
+
+DESIGNS = ("fixed", "failures")
 
 
 @dataclass
@@ -37,6 +52,9 @@ class Config:
     rule: str | None = None  # choose only among this rule's settings (default: among every entry of the grid)
     alpha: float = ALPHA  # evidence needed to leave the base policy: one-sided sign-test p-value on the validation episodes (1: the best entry)
     confirm_episodes: int = 0  # > 0: the chosen entry must win again on this many fresh validation episodes (evaluation seed seed + 1)
+    design: str = "fixed"  # fixed: every entry on `episodes` episodes | failures: sized by the base policy's failures (see above)
+    failures: int = FAILURES  # design=failures: the base policy's failures the screen and the confirmation each wait for
+    max_episodes: int = MAX_EPISODES  # design=failures: the most episodes either runs
     write: bool = True  # store the chosen setting in the world-model checkpoint
     device: str = "cpu"
     num_candidates: int = 32
@@ -48,22 +66,27 @@ class Config:
     def __post_init__(self):
         check_evaluation_settings(self.episodes, self.seed, self.num_candidates, self.dropout)
         check_eval_seed(self.test_seed, "test_seed")
+        check_choice("design", self.design, DESIGNS)
 
 
 def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
     check_choice("grid", cfg.grid, GRIDS)
     out = writable_dir(cfg.out if cfg.out else Path(cfg.world_model).parent)  # now, not after the episodes
-    record = calibrate(
-        cfg.policy_checkpoint, cfg.world_model, grid=GRIDS[cfg.grid], rule=cfg.rule, alpha=cfg.alpha, episodes=cfg.episodes, seed=cfg.seed, test_seed=cfg.test_seed, write=cfg.write,
-        confirm_episodes=cfg.confirm_episodes,
-        device=cfg.device, num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed,
-        common_noise=cfg.common_noise,
-    )
-    print(f"\nvalidation (evaluation seed {cfg.seed}, {cfg.episodes} episodes): base policy {record['base_success_rate']:.1%}")
-    for entry in record["entries"]:
-        test = entry["vs_base"]
-        print(f"{entry['name']:48s} {entry['success_rate']:7.1%}   only base / only rule {test['base_only']:2d} / {test['dalir_only']:2d}")
+    common = dict(grid=GRIDS[cfg.grid], rule=cfg.rule, alpha=cfg.alpha, seed=cfg.seed, test_seed=cfg.test_seed, write=cfg.write,
+                  device=cfg.device, num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed, common_noise=cfg.common_noise)
+    if cfg.design == "failures":
+        record = calibrate_on_failures(cfg.policy_checkpoint, cfg.world_model, failures=cfg.failures, max_episodes=cfg.max_episodes, **common)
+        print(f"\nscreen (evaluation seed {cfg.seed}): the base policy {record['base_success_rate']:.1%} over {record['episodes']} episodes, "
+              f"{len(record['failed'])} failed; each rule on those and {len(record['solved'])} solved ones")
+        for entry in record["entries"]:
+            print(f"{entry['name']:48s} failures solved {entry['wins']:2d}, successes lost {entry['losses']:2d}, estimated gain {entry['estimated_gain']:+.1%}")
+    else:
+        record = calibrate(cfg.policy_checkpoint, cfg.world_model, episodes=cfg.episodes, confirm_episodes=cfg.confirm_episodes, **common)
+        print(f"\nvalidation (evaluation seed {cfg.seed}, {cfg.episodes} episodes): base policy {record['base_success_rate']:.1%}")
+        for entry in record["entries"]:
+            test = entry["vs_base"]
+            print(f"{entry['name']:48s} {entry['success_rate']:7.1%}   only base / only rule {test['base_only']:2d} / {test['dalir_only']:2d}")
     if "confirmation" in record:
         c = record["confirmation"]
         print(f"confirmation of {c['entry']} on {c['episodes']} fresh episodes (evaluation seed {c['seed']}): {c['success_rate']:.1%} against "

@@ -31,3 +31,19 @@ def test_evaluation_renders_only_the_clouds_decisions_read_and_replays_the_same_
         rendered = torch.isfinite(a[keys.POINT_CLOUD]).reshape(a.shape[-1], -1).all(-1)  # [steps]: both frames rendered
         assert rendered.float().mean() < 0.5 and torch.isfinite(b[keys.POINT_CLOUD]).all()  # fewer renders here
         assert rendered.tolist() == [t % policy.config.action_steps == 0 for t in range(a.shape[-1])]  # at the decisions only
+
+
+def test_evaluation_runs_the_chosen_episodes_and_stops_when_told():
+    from torchrl_dalir.evaluation import evaluate
+    from torchrl_dalir.experts import make_expert
+    from torchrl_dalir.seeds import eval_episode_seed
+
+    expert = make_expert("reach")  # scripted, deterministic: an episode's outcome depends on its reset seed only
+    kwargs = dict(max_steps=45, progress=False, num_points=64)  # 45 steps: some episodes end before success
+    full = evaluate(expert, "reach", 4, seed=1, **kwargs).to_dict()["episodes"]
+    assert 0 < sum(r["success"] for r in full) < 4
+    chosen = evaluate(expert, "reach", 2, seed=1, episode_indices=[3, 1], **kwargs).to_dict()["episodes"]
+    assert chosen == [full[3], full[1]] and chosen[0]["reset_seed"] == eval_episode_seed(1, 3)
+    seen = []
+    stopped = evaluate(expert, "reach", 4, seed=1, stop_when=lambda records: seen.append(len(records)) or len(records) == 2, **kwargs)
+    assert stopped.to_dict()["episodes"] == full[:2] and seen == [1, 2]

@@ -235,6 +235,64 @@ def test_calibration_keeps_a_chosen_rule_only_if_fresh_validation_episodes_confi
         calibration.calibrate("p.pt", "w.pt", grid=grid, seed=1, confirm_episodes=8, confirm_seed=1)
 
 
+def test_calibration_sized_by_failures_screens_on_the_base_policys_failures_and_confirms_on_fresh_episodes(monkeypatch):
+    from types import SimpleNamespace
+
+    from torchrl_dalir.evaluation.compare import BASE, DALIR
+
+    grid = (SelectionConfig("margin", "ensemble", margin=1.0), SelectionConfig("argmax", "ensemble"), SelectionConfig("softmax", "ensemble"))
+    base = {1: "1111111110" "1111111101" "1111011111" "1111111111", 2: "10" * 20, 3: "10" * 20, 4: "1" * 40}
+    solves = {  # rule -> seed -> the episodes it solves
+        "argmax": {1: set(range(40)), 2: set(range(40)), 3: {i for i in range(40) if i % 2 == 0}},
+        "softmax": {1: set(range(1, 40)) - {18, 24}},  # of the screen's episodes: one failure (9) solved, one success (0) lost
+    }
+    calls = []
+
+    def fake_evaluate(policy_path, world_model_path, *, methods, seed, episodes, selection=None, episode_indices=None, stop_when=None, **kwargs):
+        rule = selection.rule if methods == ["dalir"] else None
+        calls.append((seed, rule, episodes, episode_indices))
+        records = []
+        for i in episode_indices if episode_indices is not None else range(episodes):
+            records.append(SimpleNamespace(episode=i, success=base[seed][i] == "1" if rule is None else i in solves[rule][seed]))
+            if stop_when is not None and stop_when(records):
+                break
+        name = BASE if rule is None else DALIR
+        return {name: {"success_rate": sum(r.success for r in records) / len(records), "episodes": len(records), "seconds": 0.0,
+                       "records": [vars(r) for r in records]}}
+
+    monkeypatch.setattr(calibration, "evaluate_checkpoints", fake_evaluate)
+    monkeypatch.setattr(calibration, "load_world_model", lambda path: SimpleNamespace(ensemble=object()))
+    record = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=3, max_episodes=40, block=10, seed=1, write=False)
+    # the screen stops at the end of the block holding the third failure (episode 24): 30 episodes
+    assert record["episodes"] == 30 and record["failed"] == [9, 18, 24] and record["solved"] == [0, 1, 2]
+    assert calls[0] == (1, None, 40, None) and calls[1] == (1, "argmax", 6, [9, 18, 24, 0, 1, 2])  # margin 1 is not run
+    argmax, softmax = record["entries"]
+    assert (argmax["wins"], argmax["losses"]) == (3, 0) and argmax["estimated_gain"] == pytest.approx(3 / 30)
+    assert (softmax["wins"], softmax["losses"]) == (1, 1) and softmax["estimated_gain"] == pytest.approx(1 / 3 * 0.1 - 1 / 3 * 0.9)
+    # the confirmation on seed 2 stops after 10 episodes (5 failures): the arg-max wins all 5, one-sided p = 1/32
+    assert calls[-2:] == [(2, None, 40, None), (2, "argmax", 10, None)]
+    assert record["confirmation"]["vs_base"] == {"base_only": 0, "dalir_only": 5, "p_value": 0.0625} and record["chosen"] == "argmax(ensemble)"
+    tied = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=3, max_episodes=40, block=10, seed=1, confirm_seed=3, write=False)
+    assert tied["confirmation"]["confirmed"] is False and tied["chosen"] == grid[0].name  # 0 / 0 on seed 3: the base policy is kept
+    calls.clear()
+    easy = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=3, max_episodes=40, seed=4, confirm_seed=2, write=False)
+    assert easy["failed"] == [] and easy["entries"] == [] and "confirmation" not in easy and len(calls) == 1  # nothing to screen on
+    with pytest.raises(ValueError, match="must not read the test episodes"):
+        calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, seed=1, confirm_seed=0)
+    with pytest.raises(ValueError, match="failures"):
+        calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=0)
+
+
+def test_calibration_sized_by_failures_runs_on_real_checkpoints(trained_world_model):
+    _, wm_path, policy_path = trained_world_model
+    grid = (SelectionConfig("margin", "ensemble", margin=1.0), SelectionConfig("argmax", "state"))
+    record = calibration.calibrate_on_failures(policy_path, wm_path, grid=grid, failures=1, max_episodes=4, block=2, seed=1, write=False,
+                                               num_candidates=3, max_steps=10, progress=False)
+    assert record["episodes"] == 2 and len(record["failed"]) >= 1  # 10 steps: no episode succeeds
+    assert [e["name"] for e in record["entries"]] == ["argmax(state)"] and record["entries"][0]["wins"] == 0
+    assert record["chosen"] == grid[0].name and "confirmation" not in record  # no estimated gain: nothing to confirm
+
+
 def test_a_checkpoint_without_an_ensemble_keeps_the_paper_rule_and_refuses_ensemble_rules(trained_world_model, tmp_path):
     _, wm_path, policy_path = trained_world_model
     state = torch.load(wm_path, weights_only=False)

@@ -19,6 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from torchrl_dalir.checkpoints import load_world_model, store_selection
+from torchrl_dalir.config import check_at_least
 from torchrl_dalir.evaluation.compare import (
     BASE,
     COMMON_NOISE,
@@ -48,6 +49,12 @@ COMPARISON_GRID = (
     SelectionConfig("softmax", "ensemble", temperature=0.01),
 )
 GRIDS = {"margin": MARGIN_GRID, "all": MARGIN_GRID + COMPARISON_GRID}  # by name, for configurations
+# calibrate_on_failures: the base policy's validation failures that the screen and the
+# confirmation each wait for (10: 4 won and none lost is then possible, and 7 / 1), the most
+# episodes either runs, and the episodes between two looks at the count.
+FAILURES = 10
+MAX_EPISODES = 150
+BLOCK = 10
 
 
 def calibrate(
@@ -84,18 +91,8 @@ def calibrate(
     ``rule`` that no grid entry has, for ``alpha`` outside (0, 1], and for ensemble rules on a
     world model without a scorer ensemble, before any episode.
     """
-    if not 0 < alpha <= 1:
-        raise ValueError(f"alpha is a p-value threshold in (0, 1], got {alpha}")
     confirm_seed = seed + 1 if confirm_seed is None else confirm_seed
-    if test_seed in [seed, *([confirm_seed] if confirm_episodes else [])]:
-        raise ValueError(f"calibration must not read the test episodes (evaluation seed {test_seed}); use another seed")
-    if confirm_episodes and confirm_seed == seed:
-        raise ValueError(f"the confirmation needs fresh validation episodes: confirm_seed must differ from seed ({seed})")
-    if rule is not None and not any(entry.rule == rule for entry in grid):
-        raise ValueError(f"no entry of the grid has rule {rule!r}: {[entry.name for entry in grid]}")
-    checkpoint = load_world_model(world_model_path)  # fails now, not after the base policy's episodes
-    if checkpoint.ensemble is None and any(entry.scorer == "ensemble" for entry in grid):
-        raise ValueError(f"{world_model_path} has no scorer ensemble (written before version 0.2.0): retrain the world-model stage")
+    _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed if confirm_episodes else None)
     common = dict(episodes=episodes, seed=seed, **evaluate_kwargs)
     base = evaluate_checkpoints(policy_path, world_model_path, methods=["base"], **common)[BASE]
     base_successes = [r["success"] for r in base["records"]]
@@ -124,6 +121,113 @@ def calibrate(
     if write:
         store_selection(world_model_path, SelectionConfig(**chosen["selection"]), record)
     return record
+
+
+def calibrate_on_failures(
+    policy_path: str | Path,
+    world_model_path: str | Path,
+    *,
+    grid: tuple[SelectionConfig, ...] = GRIDS["all"],
+    rule: str | None = None,
+    failures: int = FAILURES,
+    max_episodes: int = MAX_EPISODES,
+    block: int = BLOCK,
+    seed: int = VALIDATION_SEED,
+    confirm_seed: int | None = None,
+    test_seed: int = TEST_SEED,
+    alpha: float = ALPHA,
+    write: bool = True,
+    **evaluate_kwargs,
+) -> dict:
+    """Calibration sized by the base policy's failures rather than by a fixed number of episodes.
+
+    A rule can only gain where the base policy fails, so a fixed 30 episodes on which it fails
+    three times cannot show a gain however real. Here:
+
+    1. *Screen.* The base policy runs validation episodes of evaluation seed ``seed``, ``block``
+       at a time, until it has failed ``failures`` times (at most ``max_episodes``). Every entry
+       of ``grid`` (but the most conservative, the base policy itself) then runs on the episodes
+       it failed and on as many it solved (the first ones): its estimated gain in success rate
+       is the share of those failures it solves times the base policy's failure rate, minus the
+       share of those successes it loses times its success rate. These runs start the same
+       episodes, not with the same policy noise, so each share is that of a fresh attempt; the
+       estimate is unbiased but only ranks the entries.
+    2. *Confirmation.* The entry with the largest positive estimate (ties: the first listed) and
+       the base policy run fresh episodes of ``confirm_seed`` (default ``seed + 1``), sized the
+       same way; the entry is kept only if it wins there with a one-sided sign-test p-value of at
+       most ``alpha``, otherwise the most conservative entry is.
+
+    Costs the base policy's episodes plus ``2 x failures`` episodes per entry, then the
+    confirmation: where the base policy rarely fails, fewer episodes than :func:`calibrate`'s
+    fixed design, which runs every entry on every episode. Stores and returns the record as
+    :func:`calibrate` does (``design: "failures"``). Raises ``ValueError`` as :func:`calibrate` does,
+    and for fewer than one failure or block.
+    """
+    for name, value in (("failures", failures), ("block", block), ("max_episodes", max_episodes)):
+        check_at_least(name, value, 1)
+    confirm_seed = seed + 1 if confirm_seed is None else confirm_seed
+    _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed)
+
+    def enough(records: list) -> bool:  # checked at block ends only, so no episode is chosen by its own outcome
+        return len(records) % block == 0 and sum(not r.success for r in records) >= failures
+
+    def base_until_enough(at_seed: int) -> dict:
+        return evaluate_checkpoints(policy_path, world_model_path, methods=["base"], episodes=max_episodes, seed=at_seed,
+                                    stop_when=enough, **evaluate_kwargs)[BASE]
+
+    family_grid = [entry for entry in grid if rule is None or entry.rule == rule]
+    conservative = family_grid[0]
+    base = base_until_enough(seed)
+    failed = [r["episode"] for r in base["records"] if not r["success"]]
+    solved = [r["episode"] for r in base["records"] if r["success"]][: len(failed)]
+    base_rate = base["success_rate"]
+    entries = []
+    for entry in grid:
+        if entry is conservative or not failed or replays_base_policy(entry, evaluate_kwargs.get("common_noise", COMMON_NOISE), evaluate_kwargs.get("search")):
+            continue
+        row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=entry, seed=seed,
+                                   episodes=len(failed) + len(solved), episode_indices=failed + solved, **evaluate_kwargs)[DALIR]
+        outcome = {r["episode"]: r["success"] for r in row["records"]}
+        wins, losses = sum(outcome[e] for e in failed), sum(not outcome[e] for e in solved)
+        gain = wins / len(failed) * (1 - base_rate) - (losses / len(solved) * base_rate if solved else 0.0)
+        entries.append({"name": entry.name, "selection": entry.to_dict(), "wins": wins, "losses": losses,
+                        "estimated_gain": gain, "seconds": row["seconds"]})
+    ranked = [e for e in entries if e["estimated_gain"] > 0 and (rule is None or e["selection"]["rule"] == rule)]
+    candidate = max(ranked, key=lambda e: e["estimated_gain"]) if ranked else None  # max keeps the first of equals
+    chosen, confirmation = conservative, None
+    if candidate is not None:
+        confirm_base = base_until_enough(confirm_seed)
+        rows = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=SelectionConfig(**candidate["selection"]),
+                                    episodes=confirm_base["episodes"], seed=confirm_seed, **evaluate_kwargs)
+        vs_base = paired_sign_test([r["success"] for r in confirm_base["records"]], [r["success"] for r in rows[DALIR]["records"]])
+        confirmed = p_better(vs_base["base_only"], vs_base["dalir_only"]) <= alpha
+        confirmation = {"episodes": confirm_base["episodes"], "seed": confirm_seed, "entry": candidate["name"],
+                        "base_success_rate": confirm_base["success_rate"], "success_rate": rows[DALIR]["success_rate"],
+                        "vs_base": vs_base, "confirmed": confirmed}
+        chosen = SelectionConfig(**candidate["selection"]) if confirmed else conservative
+    record = {"design": "failures", "failures": failures, "max_episodes": max_episodes, "block": block, "seed": seed, "rule": rule,
+              "alpha": alpha, "episodes": base["episodes"], "base_success_rate": base_rate, "failed": failed, "solved": solved,
+              "entries": entries, **({"confirmation": confirmation} if confirmation else {}), "chosen": chosen.name, "selection": chosen.to_dict()}
+    if write:
+        store_selection(world_model_path, chosen, record)
+    return record
+
+
+def _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed) -> None:
+    """Refuses, before any episode: ``alpha`` outside (0, 1], the test seed as a validation seed, a
+    confirmation on the screen's own seed, a ``rule`` no grid entry has, and ensemble rules on a
+    world model without a scorer ensemble (``confirm_seed=None``: no confirmation)."""
+    if not 0 < alpha <= 1:
+        raise ValueError(f"alpha is a p-value threshold in (0, 1], got {alpha}")
+    if test_seed in [seed, *([confirm_seed] if confirm_seed is not None else [])]:
+        raise ValueError(f"calibration must not read the test episodes (evaluation seed {test_seed}); use another seed")
+    if confirm_seed is not None and confirm_seed == seed:
+        raise ValueError(f"the confirmation needs fresh validation episodes: confirm_seed must differ from seed ({seed})")
+    if rule is not None and not any(entry.rule == rule for entry in grid):
+        raise ValueError(f"no entry of the grid has rule {rule!r}: {[entry.name for entry in grid]}")
+    checkpoint = load_world_model(world_model_path)
+    if checkpoint.ensemble is None and any(entry.scorer == "ensemble" for entry in grid):
+        raise ValueError(f"{world_model_path} has no scorer ensemble (written before version 0.2.0): retrain the world-model stage")
 
 
 def choose(entries: list[dict], rule: str | None = None, alpha: float = ALPHA) -> dict:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -56,6 +57,8 @@ def evaluate_checkpoints(
     max_steps: int | None = None,
     video: int = 0,
     video_dir: str | Path | None = None,
+    episode_indices: list[int] | None = None,
+    stop_when: Callable[[list], bool] | None = None,
 ) -> dict[str, dict]:
     """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` is given,
     with 8-of-16 receding-horizon execution on the same ``episodes`` evaluation episodes.
@@ -76,6 +79,9 @@ def evaluate_checkpoints(
     ``n`` episodes of each method as ``<video_dir>/<method>_episode_<i>.gif`` (TorchRL's
     ``VideoRecorder``, see :func:`~torchrl_dalir.evaluation.success_rate.evaluate`), e.g.
     ``base_episode_0.gif`` next to ``dalir_episode_0.gif``: the same episode for each method.
+    ``episode_indices`` runs those episodes of ``seed`` instead of the first ``episodes``, and
+    ``stop_when`` ends a method's episodes early (both as in
+    :func:`~torchrl_dalir.evaluation.success_rate.evaluate`); ``episodes`` in a row is then the number run.
     A method that repeats another's row is not run again, so has no videos of its own: ``argmax`` when
     the checkpoint's rule is the arg-max, and, with ``common_noise`` and no ``search``, a DALI-R whose
     rule keeps the clean candidate at every decision (:attr:`SelectionConfig.keeps_clean`, e.g. a
@@ -121,17 +127,18 @@ def evaluate_checkpoints(
         name = METHODS[method]
         torch.manual_seed(actor_seed)  # after building the actor, whose modules' initialisation draws from it
         videos = {"video": video, "video_prefix": Path(video_dir) / f"{method}_episode"} if video else {}
-        result = evaluate(actor, policy.task, episodes, seed, progress=progress, describe=describe, max_steps=max_steps, **videos, **env_kwargs)
+        result = evaluate(actor, policy.task, episodes, seed, progress=progress, describe=describe, max_steps=max_steps,
+                          episode_indices=episode_indices, stop_when=stop_when, **videos, **env_kwargs)
         rows[name] = {
             **({"selection": chooser.selection.name} if method in ("dalir", "argmax") else {}),
             "success_rate": result.success_rate,
-            "episodes": episodes,
+            "episodes": len(result.episodes),
             "seconds": round(time.perf_counter() - start, 1),
             "records": result.to_dict()["episodes"],
         }
         if method in ("dalir", "argmax"):
             by_rule[rule.name] = rows[name]
-        print(f"[evaluation] {policy.task} {name}: {result.success_rate:.1%} over {episodes} episodes", flush=True)
+        print(f"[evaluation] {policy.task} {name}: {result.success_rate:.1%} over {len(result.episodes)} episodes", flush=True)
     return rows
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
@@ -72,6 +72,8 @@ def evaluate(
     max_steps: int | None = None,
     video: int = 0,
     video_prefix: str | Path | None = None,
+    episode_indices: Sequence[int] | None = None,
+    stop_when: Callable[[list[EpisodeRecord]], bool] | None = None,
     **env_kwargs,
 ) -> EvaluationResult:
     """Runs ``policy`` for ``num_episodes`` evaluation episodes and records each one.
@@ -96,6 +98,11 @@ def evaluate(
             (:data:`~torchrl_dalir.evaluation.video.VIDEO_SIZE`), as ``<video_prefix>_<episode>.gif``
             (one frame at the reset and one per step). The episodes are the same as without.
         video_prefix: where the videos go: a folder and a file-name prefix, e.g. ``videos/base``.
+        episode_indices: runs these episodes of ``seed`` (indices, in this order) instead of the
+            first ``num_episodes``: the same initial states, though not the same policy noise, as
+            in a run of all of them (the policy's random stream continues from one episode to the next).
+        stop_when: called with the records so far after every episode; ``True`` ends the
+            evaluation there (e.g. once the policy has failed often enough).
 
     For a :class:`~torchrl_dalir.modules.receding_horizon.RecedingHorizonActor` the envs built here render point
     clouds only for the observations its decisions read (``make_env``'s ``decision_period``, set to the
@@ -119,10 +126,11 @@ def evaluate(
         recorder = gif_recorder(Path(video_prefix).parent, Path(video_prefix).name)
         recording = TransformedEnv(SerialEnv(1, partial(make, pixels=VIDEO_SIZE)), recorder)
     max_steps = max_steps if max_steps is not None else get_task(task).max_steps
+    indices = list(episode_indices) if episode_indices is not None else range(num_episodes)
     records = []
-    for episode in tqdm(range(num_episodes), desc=f"evaluate {task}", disable=not progress, leave=False):
+    for position, episode in enumerate(tqdm(indices, desc=f"evaluate {task}", disable=not progress, leave=False)):
         reset_seed = eval_episode_seed(seed, episode)
-        if episode < video:
+        if position < video:
             episode_env = recording
         else:
             env = env if env is not None else SerialEnv(1, make)
@@ -142,6 +150,8 @@ def evaluate(
                 details=describe(rollout) if describe is not None else {},
             )
         )
+        if stop_when is not None and stop_when(records):
+            break
     if recording is not None:
         recording.close()
     return EvaluationResult(task=task, episodes=records)
