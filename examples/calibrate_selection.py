@@ -26,6 +26,7 @@ from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import check_choice, config_dict, parse_config
 from torchrl_dalir.evaluation.calibration import (
     ALPHA,
+    DESIGNS,
     FAILURES,
     GRIDS,
     MAX_EPISODES,
@@ -37,8 +38,6 @@ from torchrl_dalir.evaluation.calibration import (
 from torchrl_dalir.evaluation.compare import check_evaluation_settings
 from torchrl_dalir.seeds import check_eval_seed
 from torchrl_dalir.utils import atomic_write, writable_dir
-
-DESIGNS = ("fixed", "failures")
 
 
 @dataclass

@@ -92,10 +92,14 @@ def gather(records: list[dict]) -> list[dict]:
 
 
 def validation_rates(validation: dict) -> dict:
-    """A seed's calibration on validation episodes: base and every grid entry's success (%), and the
-    confirmation of the chosen entry on fresh validation episodes if there was one."""
-    rates = {"episodes": validation["episodes"], "seed": validation["seed"], "base": round(100 * validation["base"], 1),
-             **{name: round(100 * e["success_rate"], 1) for name, e in validation["entries"].items()}}
+    """A seed's calibration on validation episodes: base and every grid entry's success (%) (with
+    ``design=failures``, each entry's screen), and the confirmation of the chosen entry on fresh
+    validation episodes if there was one."""
+    rates = {"episodes": validation["episodes"], "seed": validation["seed"], "base": round(100 * validation["base"], 1)}
+    if validation.get("design") == "failures":  # screened on the base policy's failures: each entry's wins, losses and estimated gain
+        rates.update(design="failures", failed=validation["failed"], **validation["entries"])
+    else:
+        rates.update({name: round(100 * e["success_rate"], 1) for name, e in validation["entries"].items()})
     confirmation = validation.get("confirmation")
     if confirmation:
         rates["confirmation"] = {**confirmation, "base": round(100 * confirmation["base"], 1), "success_rate": round(100 * confirmation["success_rate"], 1)}

@@ -180,3 +180,19 @@ def test_run_record_keeps_the_calibrations_confirmation_on_fresh_validation_epis
     assert validation["confirmation"] == {"episodes": 30, "seed": 2, "entry": "argmax(state)", "base": 0.4, "success_rate": 0.4333,
                                           "base_only": 3, "method_only": 4, "confirmed": False}
     assert "confirmation" not in run_record(result, "fm_seed0", {k: v for k, v in calibration.items() if k != "confirmation"})["validation"]
+
+
+def test_run_record_of_a_calibration_sized_by_failures():
+    from torchrl_dalir.pipeline.records import run_record
+
+    config = {"task": "reach", "policy": "fm", "seed": 0, "eval_seed": 0, "eval_episodes": 2, "num_candidates": 4, "preset": "smoke", "out": "outputs"}
+    result = {"config": config, "commit": "abc", "success": {"base policy": {"success_rate": 0.5, "records": [{"success": True}, {"success": False}]}}}
+    calibration = {"design": "failures", "episodes": 40, "seed": 1, "alpha": 0.1, "base_success_rate": 0.75, "failed": [3, 9], "solved": [0, 1],
+                   "chosen": "argmax(state)", "entries": [{"name": "argmax(state)", "wins": 2, "losses": 0, "estimated_gain": 0.25, "seconds": 1.0}],
+                   "confirmation": {"episodes": 20, "seed": 2, "entry": "argmax(state)", "base_success_rate": 0.5, "success_rate": 0.75,
+                                    "vs_base": {"base_only": 0, "dalir_only": 5}, "confirmed": True}}
+    validation = run_record(result, "fm_seed0", calibration)["validation"]
+    assert validation == {"design": "failures", "episodes": 40, "seed": 1, "alpha": 0.1, "base": 0.75, "failed": 2, "chosen": "argmax(state)",
+                          "entries": {"argmax(state)": {"wins": 2, "losses": 0, "estimated_gain": 0.25}},
+                          "confirmation": {"episodes": 20, "seed": 2, "entry": "argmax(state)", "base": 0.5, "success_rate": 0.75,
+                                           "base_only": 0, "method_only": 5, "confirmed": True}}

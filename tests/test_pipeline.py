@@ -204,3 +204,26 @@ def test_a_training_stage_refuses_a_checkpoint_trained_with_other_settings(tmp_p
         trained_as_asked("policy", job("policy=fm").policy_training, training_finished)(path)
     torch.save({"config": config_dict(trained), "step": 10, "num_steps": 30}, path)  # interrupted: resumed, not refused
     assert not trained_as_asked("policy", trained, training_finished)(path)
+
+
+def test_main_job_calibration_design_failures_calls_calibrate_on_failures(tmp_path, monkeypatch):
+    from torchrl_dalir.config import parse_config
+    from torchrl_dalir.evaluation import calibration
+    from torchrl_dalir.pipeline import PRESETS, PipelineConfig, run
+
+    calls = []
+
+    def fake(policy_path, world_model_path, **kwargs):
+        calls.append(kwargs)
+        return {"design": "failures", "episodes": 40, "chosen": "margin(ensemble, k=1, margin=1)"}
+
+    monkeypatch.setattr(run, "calibrate_on_failures", fake)
+    cfg = parse_config(PipelineConfig, ["preset=cpu", "seed=2", "calibration_design=failures", "calibration_failures=7", f"out={tmp_path}"], PRESETS)
+    run.calibrate_and_record(cfg, tmp_path / "p.pt", tmp_path / "w.pt", tmp_path / "calibration.json")
+    assert calls == [{"failures": 7, "grid": calibration.GRIDS["all"], "alpha": calibration.ALPHA, "seed": 1, "test_seed": 0, "device": "cpu",
+                      "num_candidates": 32, "dropout": 0.2, "actor_seed": 2}]
+    assert json.loads((tmp_path / "calibration.json").read_text())["episodes"] == 40
+    with pytest.raises(ValueError, match="calibration_design must be one of"):
+        parse_config(PipelineConfig, ["calibration_design=adaptive"], PRESETS)
+    with pytest.raises(ValueError, match="would be the test episodes"):  # its confirmation reads calibration_seed + 1
+        parse_config(PipelineConfig, ["calibration_design=failures", "calibration_seed=2", "eval_seed=3"], PRESETS)

@@ -55,6 +55,7 @@ GRIDS = {"margin": MARGIN_GRID, "all": MARGIN_GRID + COMPARISON_GRID}  # by name
 FAILURES = 10
 MAX_EPISODES = 150
 BLOCK = 10
+DESIGNS = ("fixed", "failures")  # calibrate: every entry on a fixed number of episodes | calibrate_on_failures
 
 
 def calibrate(

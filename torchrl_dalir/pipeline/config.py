@@ -14,7 +14,7 @@ from torchrl_dalir.config import check_at_least, check_choice
 from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
 from torchrl_dalir.data.config import CollectionConfig
 from torchrl_dalir.envs.tasks import get_task
-from torchrl_dalir.evaluation.calibration import ALPHA, GRIDS
+from torchrl_dalir.evaluation.calibration import ALPHA, DESIGNS, FAILURES, GRIDS
 from torchrl_dalir.evaluation.compare import METHODS, check_evaluation_settings
 from torchrl_dalir.modules.config import POLICY_KINDS
 from torchrl_dalir.seeds import check_eval_seed
@@ -52,6 +52,12 @@ class PipelineConfig:
         win again on ``n`` fresh validation episodes (evaluation seed ``calibration_seed + 1``)
         to be kept (:func:`~torchrl_dalir.evaluation.calibration.calibrate`); 0 skips it (the ``cpu``
         preset: 30).
+    calibration_design: ``fixed``, every setting on ``calibration_episodes`` episodes (then the
+        confirmation above), or ``failures``, sized by the base policy's failures: the settings are
+        screened on ``calibration_failures`` episodes it failed and as many it solved, and the most
+        promising one is confirmed on fresh episodes of ``calibration_seed + 1`` until it has failed
+        as often (:func:`~torchrl_dalir.evaluation.calibration.calibrate_on_failures`; ``calibration_episodes``
+        and ``calibration_confirm_episodes`` then only say whether to calibrate at all).
     num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability.
     redo: stages to run again from scratch even if their artifact exists
         (``redo=[world_model]``); later stages are redone too, and each previous run's
@@ -76,6 +82,8 @@ class PipelineConfig:
     calibration_alpha: float = ALPHA
     calibration_confirm_episodes: int = 0
     calibration_grid: str = "all"  # all (the margin settings and the other rules) | margin (the margin settings only)
+    calibration_design: str = "fixed"  # fixed | failures (sized by the base policy's failures)
+    calibration_failures: int = FAILURES
     num_candidates: int = 32
     dropout: float = 0.2
     redo: list[str] = field(default_factory=list)
@@ -90,13 +98,16 @@ class PipelineConfig:
         for method in self.eval_methods:
             check_choice("eval_methods entry", method, METHODS)
         check_choice("calibration_grid", self.calibration_grid, GRIDS)
+        check_choice("calibration_design", self.calibration_design, DESIGNS)
+        check_at_least("calibration_failures", self.calibration_failures, 1)
         if not 0 < self.calibration_alpha <= 1:
             raise ValueError(f"calibration_alpha is a p-value threshold in (0, 1], got {self.calibration_alpha}")
         check_evaluation_settings(self.eval_episodes, self.eval_seed, self.num_candidates, self.dropout, prefix="eval_")
         check_eval_seed(self.calibration_seed, "calibration_seed")
         for name in ("calibration_episodes", "calibration_confirm_episodes", "base_policy_rollouts", "exploration_rollouts", "seed", "demo_seed"):
             check_at_least(name, getattr(self, name), 0)
-        if self.calibration_episodes and self.calibration_confirm_episodes and self.calibration_seed + 1 == self.eval_seed:
+        confirms = self.calibration_confirm_episodes or self.calibration_design == "failures"
+        if self.calibration_episodes and confirms and self.calibration_seed + 1 == self.eval_seed:
             raise ValueError(f"the confirmation's validation episodes (evaluation seed calibration_seed + 1 = {self.eval_seed}) "
                              "would be the test episodes: choose another calibration_seed")
         if self.calibration_episodes and self.calibration_seed == self.eval_seed:

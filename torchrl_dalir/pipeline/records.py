@@ -86,20 +86,27 @@ def run_record(result: dict, run: str, calibration: dict | None = None, commit: 
         "eval_seed": config["eval_seed"], "episodes": config["eval_episodes"], "num_candidates": config["num_candidates"],
         "command": command(config), "commit": result.get("commit") or commit, "methods": methods,
     }
-    if calibration and calibration.get("entries"):
+    if calibration and calibration.get("design") == "failures":  # calibrate_on_failures: a screen, then a confirmation
+        record["validation"] = {
+            "design": "failures", "episodes": calibration["episodes"], "seed": calibration["seed"], "alpha": calibration["alpha"],
+            "base": round(calibration["base_success_rate"], 4), "failed": len(calibration["failed"]), "chosen": calibration["chosen"],
+            "entries": {e["name"]: {"wins": e["wins"], "losses": e["losses"], "estimated_gain": round(e["estimated_gain"], 4)}
+                        for e in calibration["entries"]},
+        }
+    elif calibration and calibration.get("entries"):
         record["validation"] = {
             "episodes": calibration["episodes"], "seed": calibration["seed"], "alpha": calibration.get("alpha"),
             "base": round(calibration["base_success_rate"], 4), "chosen": calibration["chosen"],
             "entries": {e["name"]: {"success_rate": round(e["success_rate"], 4), "base_only": e["vs_base"]["base_only"],
                                     "method_only": e["vs_base"]["dalir_only"]} for e in calibration["entries"]},
         }
-        confirmation = calibration.get("confirmation")
-        if confirmation:  # the chosen entry re-run on fresh validation episodes (calibrate's confirm_episodes)
-            record["validation"]["confirmation"] = {
-                "episodes": confirmation["episodes"], "seed": confirmation["seed"], "entry": confirmation["entry"],
-                "base": round(confirmation["base_success_rate"], 4), "success_rate": round(confirmation["success_rate"], 4),
-                "base_only": confirmation["vs_base"]["base_only"], "method_only": confirmation["vs_base"]["dalir_only"],
-                "confirmed": confirmation["confirmed"]}
+    confirmation = (calibration or {}).get("confirmation")
+    if confirmation and "validation" in record:  # the chosen entry re-run on fresh validation episodes
+        record["validation"]["confirmation"] = {
+            "episodes": confirmation["episodes"], "seed": confirmation["seed"], "entry": confirmation["entry"],
+            "base": round(confirmation["base_success_rate"], 4), "success_rate": round(confirmation["success_rate"], 4),
+            "base_only": confirmation["vs_base"]["base_only"], "method_only": confirmation["vs_base"]["dalir_only"],
+            "confirmed": confirmation["confirmed"]}
     return record
 
 

@@ -19,7 +19,7 @@ from torchrl_dalir.checkpoints import load_world_model, safe_torch_load, store_s
 from torchrl_dalir.config import config_dict
 from torchrl_dalir.data import Source, collect
 from torchrl_dalir.data.storage import is_complete
-from torchrl_dalir.evaluation.calibration import GRIDS, calibrate
+from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, calibrate_on_failures
 from torchrl_dalir.evaluation.compare import DALIR
 from torchrl_dalir.pipeline.config import STAGES, PipelineConfig
 from torchrl_dalir.pipeline.report import evaluate_and_report
@@ -146,11 +146,13 @@ def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_pat
     """Chooses the selection rule's setting on validation episodes (``calibration_episodes=0``:
     the paper's arg-max) and stores it in the world model; the record also goes to ``out``."""
     if cfg.calibration_episodes > 0:
-        record = calibrate(policy_path, world_model_path, grid=GRIDS[cfg.calibration_grid], alpha=cfg.calibration_alpha, episodes=cfg.calibration_episodes,
-                           confirm_episodes=cfg.calibration_confirm_episodes,
-                           seed=cfg.calibration_seed, test_seed=cfg.eval_seed, device=cfg.device, num_candidates=cfg.num_candidates,
-                           dropout=cfg.dropout, actor_seed=cfg.seed)
-        print(f"[calibration] chosen on {cfg.calibration_episodes} validation episodes: {record['chosen']}", flush=True)
+        common = dict(grid=GRIDS[cfg.calibration_grid], alpha=cfg.calibration_alpha, seed=cfg.calibration_seed, test_seed=cfg.eval_seed,
+                      device=cfg.device, num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.seed)
+        if cfg.calibration_design == "failures":
+            record = calibrate_on_failures(policy_path, world_model_path, failures=cfg.calibration_failures, **common)
+        else:
+            record = calibrate(policy_path, world_model_path, episodes=cfg.calibration_episodes, confirm_episodes=cfg.calibration_confirm_episodes, **common)
+        print(f"[calibration] chosen on {record['episodes']} validation episodes: {record['chosen']}", flush=True)
     else:
         record = {"chosen": SelectionConfig().name, "episodes": 0}
         store_selection(world_model_path, SelectionConfig(), record)
