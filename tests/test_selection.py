@@ -249,16 +249,18 @@ def test_calibration_sized_by_failures_screens_on_the_base_policys_failures_and_
     calls = []
 
     def fake_evaluate(policy_path, world_model_path, *, methods, seed, episodes, selection=None, episode_indices=None, stop_when=None, **kwargs):
-        rule = selection.rule if methods == ["dalir"] else None
-        calls.append((seed, rule, episodes, episode_indices))
-        records = []
-        for i in episode_indices if episode_indices is not None else range(episodes):
-            records.append(SimpleNamespace(episode=i, success=base[seed][i] == "1" if rule is None else i in solves[rule][seed]))
-            if stop_when is not None and stop_when(records):
-                break
-        name = BASE if rule is None else DALIR
-        return {name: {"success_rate": sum(r.success for r in records) / len(records), "episodes": len(records), "seconds": 0.0,
-                       "records": [vars(r) for r in records]}}
+        rows = {}
+        for method in methods:
+            rule = selection.rule if method == "dalir" else None
+            calls.append((seed, rule, episodes, episode_indices))
+            records = []
+            for i in episode_indices if episode_indices is not None else range(episodes):
+                records.append(SimpleNamespace(episode=i, success=base[seed][i] == "1" if rule is None else i in solves[rule][seed]))
+                if stop_when is not None and stop_when(records):
+                    break
+            rows[BASE if rule is None else DALIR] = {"success_rate": sum(r.success for r in records) / len(records), "episodes": len(records),
+                                                     "seconds": 0.0, "records": [vars(r) for r in records]}
+        return rows
 
     monkeypatch.setattr(calibration, "evaluate_checkpoints", fake_evaluate)
     monkeypatch.setattr(calibration, "load_world_model", lambda path: SimpleNamespace(ensemble=object()))
@@ -269,9 +271,9 @@ def test_calibration_sized_by_failures_screens_on_the_base_policys_failures_and_
     argmax, softmax = record["entries"]
     assert (argmax["wins"], argmax["losses"]) == (3, 0) and argmax["estimated_gain"] == pytest.approx(3 / 30)
     assert (softmax["wins"], softmax["losses"]) == (1, 1) and softmax["estimated_gain"] == pytest.approx(1 / 3 * 0.1 - 1 / 3 * 0.9)
-    # the confirmation on seed 2 stops after 10 episodes (5 failures): the arg-max wins all 5, one-sided p = 1/32
-    assert calls[-2:] == [(2, None, 40, None), (2, "argmax", 10, None)]
-    assert record["confirmation"]["vs_base"] == {"base_only": 0, "dalir_only": 5, "p_value": 0.0625} and record["chosen"] == "argmax(ensemble)"
+    # the confirmation: as many episodes of seed 2 as the screen took; the arg-max wins all 15 the base policy fails
+    assert calls[-2:] == [(2, None, 30, None), (2, "argmax", 30, None)]
+    assert record["confirmation"]["vs_base"] == {"base_only": 0, "dalir_only": 15, "p_value": 2 * 0.5**15} and record["chosen"] == "argmax(ensemble)"
     tied = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=3, max_episodes=40, block=10, seed=1, confirm_seed=3, write=False)
     assert tied["confirmation"]["confirmed"] is False and tied["chosen"] == grid[0].name  # 0 / 0 on seed 3: the base policy is kept
     calls.clear()

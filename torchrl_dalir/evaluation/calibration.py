@@ -154,9 +154,10 @@ def calibrate_on_failures(
        episodes, not with the same policy noise, so each share is that of a fresh attempt; the
        estimate is unbiased but only ranks the entries.
     2. *Confirmation.* The entry with the largest positive estimate (ties: the first listed) and
-       the base policy run fresh episodes of ``confirm_seed`` (default ``seed + 1``), sized the
-       same way; the entry is kept only if it wins there with a one-sided sign-test p-value of at
-       most ``alpha``, otherwise the most conservative entry is.
+       the base policy run as many fresh episodes, of ``confirm_seed`` (default ``seed + 1``), as
+       the screen took (a number fixed before them, so the sign test is exact); the entry is kept
+       only if it wins there with a one-sided sign-test p-value of at most ``alpha``, otherwise
+       the most conservative entry is.
 
     Costs the base policy's episodes plus ``2 x failures`` episodes per entry, then the
     confirmation: where the base policy rarely fails, fewer episodes than :func:`calibrate`'s
@@ -169,16 +170,12 @@ def calibrate_on_failures(
     confirm_seed = seed + 1 if confirm_seed is None else confirm_seed
     _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed)
 
-    def enough(records: list) -> bool:  # checked at block ends only, so no episode is chosen by its own outcome
+    def enough(records: list) -> bool:  # checked at block ends only
         return len(records) % block == 0 and sum(not r.success for r in records) >= failures
 
-    def base_until_enough(at_seed: int) -> dict:
-        return evaluate_checkpoints(policy_path, world_model_path, methods=["base"], episodes=max_episodes, seed=at_seed,
-                                    stop_when=enough, **evaluate_kwargs)[BASE]
-
-    family_grid = [entry for entry in grid if rule is None or entry.rule == rule]
-    conservative = family_grid[0]
-    base = base_until_enough(seed)
+    conservative = [entry for entry in grid if rule is None or entry.rule == rule][0]
+    base = evaluate_checkpoints(policy_path, world_model_path, methods=["base"], episodes=max_episodes, seed=seed, stop_when=enough,
+                                **evaluate_kwargs)[BASE]
     failed = [r["episode"] for r in base["records"] if not r["success"]]
     solved = [r["episode"] for r in base["records"] if r["success"]][: len(failed)]
     base_rate = base["success_rate"]
@@ -196,14 +193,13 @@ def calibrate_on_failures(
     ranked = [e for e in entries if e["estimated_gain"] > 0 and (rule is None or e["selection"]["rule"] == rule)]
     candidate = max(ranked, key=lambda e: e["estimated_gain"]) if ranked else None  # max keeps the first of equals
     chosen, confirmation = conservative, None
-    if candidate is not None:
-        confirm_base = base_until_enough(confirm_seed)
-        rows = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=SelectionConfig(**candidate["selection"]),
-                                    episodes=confirm_base["episodes"], seed=confirm_seed, **evaluate_kwargs)
-        vs_base = paired_sign_test([r["success"] for r in confirm_base["records"]], [r["success"] for r in rows[DALIR]["records"]])
+    if candidate is not None:  # as many fresh episodes as the screen took: a number its outcomes cannot sway
+        rows = evaluate_checkpoints(policy_path, world_model_path, methods=["base", "dalir"], selection=SelectionConfig(**candidate["selection"]),
+                                    episodes=base["episodes"], seed=confirm_seed, **evaluate_kwargs)
+        vs_base = paired_sign_test(*([r["success"] for r in rows[name]["records"]] for name in (BASE, DALIR)))
         confirmed = p_better(vs_base["base_only"], vs_base["dalir_only"]) <= alpha
-        confirmation = {"episodes": confirm_base["episodes"], "seed": confirm_seed, "entry": candidate["name"],
-                        "base_success_rate": confirm_base["success_rate"], "success_rate": rows[DALIR]["success_rate"],
+        confirmation = {"episodes": base["episodes"], "seed": confirm_seed, "entry": candidate["name"],
+                        "base_success_rate": rows[BASE]["success_rate"], "success_rate": rows[DALIR]["success_rate"],
                         "vs_base": vs_base, "confirmed": confirmed}
         chosen = SelectionConfig(**candidate["selection"]) if confirmed else conservative
     record = {"design": "failures", "failures": failures, "max_episodes": max_episodes, "block": block, "seed": seed, "rule": rule,
