@@ -264,7 +264,7 @@ def test_calibration_sized_by_failures_screens_on_the_base_policys_failures_and_
 
     monkeypatch.setattr(calibration, "evaluate_checkpoints", fake_evaluate)
     monkeypatch.setattr(calibration, "load_world_model", lambda path: SimpleNamespace(ensemble=object()))
-    record = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=3, max_episodes=40, block=10, seed=1, write=False)
+    record = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=3, min_episodes=20, max_episodes=40, block=10, seed=1, write=False)
     # the screen stops at the end of the block holding the third failure (episode 24): 30 episodes
     assert record["episodes"] == 30 and record["failed"] == [9, 18, 24] and record["solved"] == [0, 1, 2]
     assert calls[0] == (1, None, 40, None) and calls[1] == (1, "argmax", 6, [9, 18, 24, 0, 1, 2])  # margin 1 is not run
@@ -274,21 +274,27 @@ def test_calibration_sized_by_failures_screens_on_the_base_policys_failures_and_
     # the confirmation: as many episodes of seed 2 as the screen took; the arg-max wins all 15 the base policy fails
     assert calls[-2:] == [(2, None, 30, None), (2, "argmax", 30, None)]
     assert record["confirmation"]["vs_base"] == {"base_only": 0, "dalir_only": 15, "p_value": 2 * 0.5**15} and record["chosen"] == "argmax(ensemble)"
-    tied = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=3, max_episodes=40, block=10, seed=1, confirm_seed=3, write=False)
+    tied = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=3, min_episodes=20, max_episodes=40, block=10, seed=1, confirm_seed=3,
+                                             write=False)
     assert tied["confirmation"]["confirmed"] is False and tied["chosen"] == grid[0].name  # 0 / 0 on seed 3: the base policy is kept
     calls.clear()
-    easy = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=3, max_episodes=40, seed=4, confirm_seed=2, write=False)
+    easy = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=3, min_episodes=20, max_episodes=40, seed=4, confirm_seed=2, write=False)
     assert easy["failed"] == [] and easy["entries"] == [] and "confirmation" not in easy and len(calls) == 1  # nothing to screen on
     with pytest.raises(ValueError, match="must not read the test episodes"):
         calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, seed=1, confirm_seed=0)
     with pytest.raises(ValueError, match="failures"):
         calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, failures=0)
+    with pytest.raises(ValueError, match="max_episodes"):
+        calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid, max_episodes=20)  # fewer than min_episodes
+    # a base policy that fails early still runs min_episodes: the confirmation is as long
+    early = calibration.calibrate_on_failures("p.pt", "w.pt", grid=grid[:2], failures=1, max_episodes=40, seed=2, confirm_seed=3, write=False)
+    assert early["episodes"] == 30 and early["confirmation"]["episodes"] == 30
 
 
 def test_calibration_sized_by_failures_runs_on_real_checkpoints(trained_world_model):
     _, wm_path, policy_path = trained_world_model
     grid = (SelectionConfig("margin", "ensemble", margin=1.0), SelectionConfig("argmax", "state"))
-    record = calibration.calibrate_on_failures(policy_path, wm_path, grid=grid, failures=1, max_episodes=4, block=2, seed=1, write=False,
+    record = calibration.calibrate_on_failures(policy_path, wm_path, grid=grid, failures=1, min_episodes=2, max_episodes=4, block=2, seed=1, write=False,
                                                num_candidates=3, max_steps=10, progress=False)
     assert record["episodes"] == 2 and len(record["failed"]) >= 1  # 10 steps: no episode succeeds
     assert [e["name"] for e in record["entries"]] == ["argmax(state)"] and record["entries"][0]["wins"] == 0

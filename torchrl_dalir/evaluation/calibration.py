@@ -49,10 +49,11 @@ COMPARISON_GRID = (
     SelectionConfig("softmax", "ensemble", temperature=0.01),
 )
 GRIDS = {"margin": MARGIN_GRID, "all": MARGIN_GRID + COMPARISON_GRID}  # by name, for configurations
-# calibrate_on_failures: the base policy's validation failures that the screen and the
-# confirmation each wait for (10: 4 won and none lost is then possible, and 7 / 1), the most
-# episodes either runs, and the episodes between two looks at the count.
+# calibrate_on_failures: the base policy's validation failures that the screen waits for (10:
+# 4 won and none lost is then possible, and 7 / 1), the fewest and the most episodes it runs, and
+# the episodes between two looks at the count.
 FAILURES = 10
+MIN_EPISODES = 30  # the fixed design's count: the confirmation, as long as the screen, never runs fewer
 MAX_EPISODES = 150
 BLOCK = 10
 DESIGNS = ("fixed", "failures")  # calibrate: every entry on a fixed number of episodes | calibrate_on_failures
@@ -131,6 +132,7 @@ def calibrate_on_failures(
     grid: tuple[SelectionConfig, ...] = GRIDS["all"],
     rule: str | None = None,
     failures: int = FAILURES,
+    min_episodes: int = MIN_EPISODES,
     max_episodes: int = MAX_EPISODES,
     block: int = BLOCK,
     seed: int = VALIDATION_SEED,
@@ -146,7 +148,8 @@ def calibrate_on_failures(
     three times cannot show a gain however real. Here:
 
     1. *Screen.* The base policy runs validation episodes of evaluation seed ``seed``, ``block``
-       at a time, until it has failed ``failures`` times (at most ``max_episodes``). Every entry
+       at a time, until it has run ``min_episodes`` and failed ``failures`` times (at most
+       ``max_episodes``). Every entry
        of ``grid`` (but the most conservative, the base policy itself) then runs on the episodes
        it failed and on as many it solved (the first ones): its estimated gain in success rate
        is the share of those failures it solves times the base policy's failure rate, minus the
@@ -165,13 +168,14 @@ def calibrate_on_failures(
     :func:`calibrate` does (``design: "failures"``). Raises ``ValueError`` as :func:`calibrate` does,
     and for fewer than one failure or block.
     """
-    for name, value in (("failures", failures), ("block", block), ("max_episodes", max_episodes)):
+    for name, value in (("failures", failures), ("block", block), ("min_episodes", min_episodes)):
         check_at_least(name, value, 1)
+    check_at_least("max_episodes", max_episodes, min_episodes)
     confirm_seed = seed + 1 if confirm_seed is None else confirm_seed
     _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed)
 
     def enough(records: list) -> bool:  # checked at block ends only
-        return len(records) % block == 0 and sum(not r.success for r in records) >= failures
+        return len(records) % block == 0 and len(records) >= min_episodes and sum(not r.success for r in records) >= failures
 
     conservative = [entry for entry in grid if rule is None or entry.rule == rule][0]
     base = evaluate_checkpoints(policy_path, world_model_path, methods=["base"], episodes=max_episodes, seed=seed, stop_when=enough,
@@ -202,7 +206,7 @@ def calibrate_on_failures(
                         "base_success_rate": rows[BASE]["success_rate"], "success_rate": rows[DALIR]["success_rate"],
                         "vs_base": vs_base, "confirmed": confirmed}
         chosen = SelectionConfig(**candidate["selection"]) if confirmed else conservative
-    record = {"design": "failures", "failures": failures, "max_episodes": max_episodes, "block": block, "seed": seed, "rule": rule,
+    record = {"design": "failures", "failures": failures, "min_episodes": min_episodes, "max_episodes": max_episodes, "block": block, "seed": seed, "rule": rule,
               "alpha": alpha, "episodes": base["episodes"], "base_success_rate": base_rate, "failed": failed, "solved": solved,
               "entries": entries, **({"confirmation": confirmation} if confirmation else {}), "chosen": chosen.name, "selection": chosen.to_dict()}
     if write:
