@@ -61,3 +61,17 @@ def test_the_main_job_refuses_stage_settings_it_would_replace():
     assert cfg.world_model.policy_checkpoint == "/tmp/x/policies/shelf-place/dp_seed2/checkpoint.pt"
     assert cfg.collection.mixed_name == cfg.world_model.mixed_name == "mixed_dp_seed2"
     assert dataclasses.replace(cfg) == cfg  # a built configuration validates again unchanged
+
+
+def test_fm_with_the_velocity_target_on_adroit_warns():
+    import warnings
+
+    from torchrl_dalir.training.policy import PRESETS as POLICY_PRESETS
+    from torchrl_dalir.training.policy import PolicyTrainingConfig
+
+    with pytest.warns(UserWarning, match="flow_prediction=sample"):
+        parse_config(PolicyTrainingConfig, ["task=door", "policy=fm"], POLICY_PRESETS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for args in (["task=door", "policy=fm", "model.flow_prediction=sample"], ["task=pen", "policy=dp"], ["task=disassemble", "policy=fm"]):
+            parse_config(PolicyTrainingConfig, args, POLICY_PRESETS)

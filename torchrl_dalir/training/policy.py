@@ -6,6 +6,7 @@ The policy never sees the mixed-quality data: that is the data asymmetry of DALI
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from torchrl_dalir.config import check_at_least, check_choice, config_dict
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.envs.make_env import action_bounds
-from torchrl_dalir.envs.tasks import get_task
+from torchrl_dalir.envs.tasks import ADROIT, get_task
 from torchrl_dalir.modules import ChunkPolicy3D, PolicyConfig, make_policy
 from torchrl_dalir.modules.config import POLICY_KINDS
 from torchrl_dalir.objectives import ConsistencyFlowMatchingLoss, DiffusionLoss, FlowMatchingLoss
@@ -57,9 +58,14 @@ class PolicyTrainingConfig:
     progress: bool = True
 
     def __post_init__(self):
-        get_task(self.task)  # an unknown name fails here, with the list of known ones
+        spec = get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("policy", self.policy, POLICY_KINDS)
         self.model.kind = self.policy  # the backbone is named once, by ``policy``
+        if spec.suite == ADROIT and self.policy == "fm" and self.model.flow_prediction == "velocity":
+            warnings.warn(
+                f"FM on {spec.name} with the velocity target: on Adroit's 24-28-D chunks it keeps the sampling noise after the "
+                "cpu budget (Door: 0 % success, docs/measurements.md); the protocol's Adroit FM predicts the clean chunk: "
+                "pass policy_training.model.flow_prediction=sample (model.flow_prediction=sample in train_policy.py)", stacklevel=2)
         check_choice("precision", self.precision, PRECISIONS)
         for name, minimum in (("batch_size", 1), ("epochs", 1), ("num_steps", 0), ("checkpoint_every", 1), ("log_every", 1)):
             check_at_least(name, getattr(self, name), minimum)
