@@ -8,7 +8,10 @@ than with the memory kept and the main job's policy training 1.8x longer (347 vs
 it kernel time spent zeroing fresh pages. The tunables only take effect at process start, hence
 :func:`reuse_freed_memory` re-executes the script once with them set; child processes (collector
 workers, torchrun ranks) inherit them. Results do not change (the same kernels on the same
-values). ``DALIR_MALLOC=system`` turns it off.
+values). Opt-in (``DALIR_MALLOC=reuse``): a main job that ran every stage in one process reached
+a peak of 19.1 GiB in its world-model stage under these tunables, against 2.0 GiB for the same
+stage with glibc's defaults (freed memory is never returned, and the heap can fragment); use it
+where memory is plentiful, e.g. one job per machine.
 """
 
 from __future__ import annotations
@@ -20,15 +23,16 @@ from pathlib import Path
 
 # Allocations up to 4 GiB come from the heap and freed memory stays there for reuse.
 MALLOC_TUNABLES = "glibc.malloc.mmap_threshold=4294967296:glibc.malloc.trim_threshold=4294967296"
-OPT_OUT = "DALIR_MALLOC"  # "system": keep the C library's defaults
+SWITCH = "DALIR_MALLOC"  # "reuse": re-execute under MALLOC_TUNABLES; anything else (the default): glibc's defaults
 
 
 def tuned_environment(environ: dict[str, str] | None = None) -> dict[str, str] | None:
-    """The environment to re-execute with, or ``None`` when there is nothing to do (not glibc
-    Linux, opted out, or the tunables already set by the user or a previous re-execution)."""
+    """The environment to re-execute with, or ``None`` when there is nothing to do (not asked for
+    with ``DALIR_MALLOC=reuse``, not glibc Linux, or the tunables already set by the user or a
+    previous re-execution)."""
     environ = dict(os.environ if environ is None else environ)
     tunables = environ.get("GLIBC_TUNABLES", "")
-    if sys.platform != "linux" or platform.libc_ver()[0] != "glibc" or environ.get(OPT_OUT) == "system" or "glibc.malloc.mmap_threshold" in tunables:
+    if sys.platform != "linux" or platform.libc_ver()[0] != "glibc" or environ.get(SWITCH) != "reuse" or "glibc.malloc.mmap_threshold" in tunables:
         return None
     environ["GLIBC_TUNABLES"] = f"{tunables}:{MALLOC_TUNABLES}" if tunables else MALLOC_TUNABLES
     return environ
