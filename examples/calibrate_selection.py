@@ -11,8 +11,8 @@ beat the base policy with a one-sided sign-test p-value of at most ``alpha`` (ot
 conservative setting, the base policy itself) is written into the world-model checkpoint, which ``RerankingActor.from_checkpoints`` and ``examples/evaluate.py`` then use.
 ``design=failures`` (``evaluation.calibration.calibrate_on_failures``) instead runs the base policy
 until it has failed ``failures`` times, screens every rule on those episodes and as many it
-solved, and confirms the most promising rule on fresh episodes sized the same way: it can see a
-gain where the base policy rarely fails. Writes ``<out>/calibration.json`` and prints the table.
+solved, and confirms the most promising rule on as many fresh episodes as the screen took: it can
+see a gain where the base policy rarely fails. Writes ``<out>/calibration.json`` and prints the table.
 """
 
 from __future__ import annotations
@@ -52,8 +52,8 @@ class Config:
     alpha: float = ALPHA  # evidence needed to leave the base policy: one-sided sign-test p-value on the validation episodes (1: the best entry)
     confirm_episodes: int = 0  # > 0: the chosen entry must win again on this many fresh validation episodes (evaluation seed seed + 1)
     design: str = "fixed"  # fixed: every entry on `episodes` episodes | failures: sized by the base policy's failures (see above)
-    failures: int = FAILURES  # design=failures: the base policy's failures the screen and the confirmation each wait for
-    max_episodes: int = MAX_EPISODES  # design=failures: the most episodes either runs
+    failures: int = FAILURES  # design=failures: the base policy's failures the screen waits for
+    max_episodes: int = MAX_EPISODES  # design=failures: the most episodes the screen runs
     write: bool = True  # store the chosen setting in the world-model checkpoint
     device: str = "cpu"
     num_candidates: int = 32
@@ -96,5 +96,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: with DALIR_MALLOC=reuse: re-executes under glibc malloc tunables
+    reuse_freed_memory(__file__)  # before any large tensor; with DALIR_MALLOC=reuse, re-executes under glibc malloc tunables
     main(sys.argv[1:])

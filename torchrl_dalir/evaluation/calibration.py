@@ -111,13 +111,8 @@ def calibrate(
     conservative = family(entries, rule)[0]
     confirmation = None
     if confirm_episodes and chosen is not conservative:
-        rows = evaluate_checkpoints(policy_path, world_model_path, methods=["base", "dalir"], selection=SelectionConfig(**chosen["selection"]),
-                                    **{**common, "episodes": confirm_episodes, "seed": confirm_seed})
-        vs_base = paired_sign_test(*([r["success"] for r in rows[name]["records"]] for name in (BASE, DALIR)))
-        confirmed = p_better(vs_base["base_only"], vs_base["dalir_only"]) <= alpha
-        confirmation = {"episodes": confirm_episodes, "seed": confirm_seed, "entry": chosen["name"], "base_success_rate": rows[BASE]["success_rate"],
-                        "success_rate": rows[DALIR]["success_rate"], "vs_base": vs_base, "confirmed": confirmed}
-        chosen = chosen if confirmed else conservative
+        confirmation = _confirm(policy_path, world_model_path, chosen, confirm_episodes, confirm_seed, alpha, **evaluate_kwargs)
+        chosen = chosen if confirmation["confirmed"] else conservative
     record = {"episodes": episodes, "seed": seed, "rule": rule, "alpha": alpha, "base_success_rate": base["success_rate"],
               "entries": entries, **({"confirmation": confirmation} if confirmation else {}), "chosen": chosen["name"], "selection": chosen["selection"]}
     if write:
@@ -194,24 +189,29 @@ def calibrate_on_failures(
         gain = wins / len(failed) * (1 - base_rate) - (losses / len(solved) * base_rate if solved else 0.0)
         entries.append({"name": entry.name, "selection": entry.to_dict(), "wins": wins, "losses": losses,
                         "estimated_gain": gain, "seconds": row["seconds"]})
-    ranked = [e for e in entries if e["estimated_gain"] > 0 and (rule is None or e["selection"]["rule"] == rule)]
+    ranked = [e for e in family(entries, rule) if e["estimated_gain"] > 0]
     candidate = max(ranked, key=lambda e: e["estimated_gain"]) if ranked else None  # max keeps the first of equals
     chosen, confirmation = conservative, None
     if candidate is not None:  # as many fresh episodes as the screen took: a number its outcomes cannot sway
-        rows = evaluate_checkpoints(policy_path, world_model_path, methods=["base", "dalir"], selection=SelectionConfig(**candidate["selection"]),
-                                    episodes=base["episodes"], seed=confirm_seed, **evaluate_kwargs)
-        vs_base = paired_sign_test(*([r["success"] for r in rows[name]["records"]] for name in (BASE, DALIR)))
-        confirmed = p_better(vs_base["base_only"], vs_base["dalir_only"]) <= alpha
-        confirmation = {"episodes": base["episodes"], "seed": confirm_seed, "entry": candidate["name"],
-                        "base_success_rate": rows[BASE]["success_rate"], "success_rate": rows[DALIR]["success_rate"],
-                        "vs_base": vs_base, "confirmed": confirmed}
-        chosen = SelectionConfig(**candidate["selection"]) if confirmed else conservative
+        confirmation = _confirm(policy_path, world_model_path, candidate, base["episodes"], confirm_seed, alpha, **evaluate_kwargs)
+        chosen = SelectionConfig(**candidate["selection"]) if confirmation["confirmed"] else conservative
     record = {"design": "failures", "failures": failures, "min_episodes": min_episodes, "max_episodes": max_episodes, "block": block, "seed": seed, "rule": rule,
               "alpha": alpha, "episodes": base["episodes"], "base_success_rate": base_rate, "failed": failed, "solved": solved,
               "entries": entries, **({"confirmation": confirmation} if confirmation else {}), "chosen": chosen.name, "selection": chosen.to_dict()}
     if write:
         store_selection(world_model_path, chosen, record)
     return record
+
+
+def _confirm(policy_path, world_model_path, entry: dict, episodes: int, seed: int, alpha: float, **evaluate_kwargs) -> dict:
+    """The base policy and ``entry`` (as a calibration records it) on ``episodes`` fresh validation
+    episodes of ``seed``: the confirmation's record, ``confirmed`` if the entry wins with a
+    one-sided sign-test p-value of at most ``alpha``."""
+    rows = evaluate_checkpoints(policy_path, world_model_path, methods=["base", "dalir"], selection=SelectionConfig(**entry["selection"]),
+                                episodes=episodes, seed=seed, **evaluate_kwargs)
+    vs_base = paired_sign_test(*([r["success"] for r in rows[name]["records"]] for name in (BASE, DALIR)))
+    return {"episodes": episodes, "seed": seed, "entry": entry["name"], "base_success_rate": rows[BASE]["success_rate"],
+            "success_rate": rows[DALIR]["success_rate"], "vs_base": vs_base, "confirmed": p_better(vs_base["base_only"], vs_base["dalir_only"]) <= alpha}
 
 
 def _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed) -> None:

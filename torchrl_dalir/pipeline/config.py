@@ -55,8 +55,8 @@ class PipelineConfig:
     calibration_design: ``fixed``, every setting on ``calibration_episodes`` episodes (then the
         confirmation above), or ``failures``, sized by the base policy's failures: the settings are
         screened on ``calibration_failures`` episodes it failed and as many it solved, and the most
-        promising one is confirmed on fresh episodes of ``calibration_seed + 1`` until it has failed
-        as often (:func:`~torchrl_dalir.evaluation.calibration.calibrate_on_failures`; ``calibration_episodes``
+        promising one is confirmed on as many fresh episodes of ``calibration_seed + 1`` as the
+        screen took (:func:`~torchrl_dalir.evaluation.calibration.calibrate_on_failures`; ``calibration_episodes``
         and ``calibration_confirm_episodes`` then only say whether to calibrate at all).
     num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability.
     redo: stages to run again from scratch even if their artifact exists

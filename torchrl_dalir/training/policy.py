@@ -65,7 +65,7 @@ class PolicyTrainingConfig:
             warnings.warn(
                 f"FM on {spec.name} with the velocity target: on Adroit's 24-28-D chunks it keeps the sampling noise after the "
                 "cpu budget (Door: 0 % success, docs/measurements.md); the protocol's Adroit FM predicts the clean chunk: "
-                "pass policy_training.model.flow_prediction=sample (model.flow_prediction=sample in train_policy.py)", stacklevel=2)
+                "pass policy_training.model.flow_prediction=sample (model.flow_prediction=sample in train_policy.py)")  # one place: shown once
         check_choice("precision", self.precision, PRECISIONS)
         for name, minimum in (("batch_size", 1), ("epochs", 1), ("num_steps", 0), ("checkpoint_every", 1), ("log_every", 1)):
             check_at_least(name, getattr(self, name), minimum)
