@@ -63,15 +63,31 @@ def test_the_main_job_refuses_stage_settings_it_would_replace():
     assert dataclasses.replace(cfg) == cfg  # a built configuration validates again unchanged
 
 
-def test_fm_with_the_velocity_target_on_adroit_warns():
+def test_the_fm_target_is_the_tasks_unless_named_and_velocity_on_adroit_warns():
     import warnings
 
+    from torchrl_dalir.modules import PolicyConfig, make_policy
+    from torchrl_dalir.pipeline.config import PRESETS as PIPELINE_PRESETS
+    from torchrl_dalir.pipeline.config import PipelineConfig
     from torchrl_dalir.training.policy import PRESETS as POLICY_PRESETS
     from torchrl_dalir.training.policy import PolicyTrainingConfig
 
-    with pytest.warns(UserWarning, match="flow_prediction=sample"):
-        parse_config(PolicyTrainingConfig, ["task=door", "policy=fm"], POLICY_PRESETS)
+    def target(args, config_class=PolicyTrainingConfig, presets=POLICY_PRESETS):
+        cfg = parse_config(config_class, args, presets)
+        cfg = getattr(cfg, "policy_training", cfg)
+        return cfg.model.flow_prediction, cfg.policy_config().flow_prediction
+
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        for args in (["task=door", "policy=fm", "model.flow_prediction=sample"], ["task=pen", "policy=dp"], ["task=disassemble", "policy=fm"]):
-            parse_config(PolicyTrainingConfig, args, POLICY_PRESETS)
+        assert target(["task=door", "policy=fm"]) == ("task", "sample")
+        assert target(["task=pen", "policy=dp"]) == ("task", "sample")  # DP ignores it
+        assert target(["task=disassemble", "policy=fm"]) == ("task", "velocity")
+        assert target(["task=door", "policy=fm", "model.flow_prediction=sample"]) == ("sample", "sample")
+        assert target(["task=disassemble", "policy=fm", "model.flow_prediction=sample"]) == ("sample", "sample")
+        # the main job sets its stages' task after their defaults were built: still the task's target
+        assert target(["task=door", "policy=fm"], PipelineConfig, PIPELINE_PRESETS) == ("task", "sample")
+        assert target(["task=stick-pull", "policy=fm"], PipelineConfig, PIPELINE_PRESETS) == ("task", "velocity")
+    with pytest.warns(UserWarning, match="velocity target"):
+        assert target(["task=door", "policy=fm", "model.flow_prediction=velocity"]) == ("velocity", "velocity")
+    with pytest.raises(ValueError, match="names no target"):
+        make_policy(PolicyConfig(flow_prediction="task"), action_dim=4, state_dim=4)

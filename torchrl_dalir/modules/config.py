@@ -8,6 +8,7 @@ from torchrl_dalir.config import check_choice
 
 POLICY_KINDS = ("dp", "fm")  # DDIM diffusion (DP3), linear-path flow matching
 FLOW_PREDICTIONS = ("velocity", "sample")  # what the flow-matching network outputs
+BY_TASK = "task"  # a training configuration's flow_prediction: the task's protocol target, resolved before building
 
 
 def executed_slice(obs_steps: int, action_steps: int) -> slice:
@@ -41,6 +42,9 @@ class PolicyConfig:
             after the ``cpu`` budget, the clean-chunk target did not (``docs/results`` and README).
             With one Euler step a sample-predicting network returns its estimate of the chunk, so
             its candidates differ by their inputs (point dropout) more than by their noise.
+            ``"task"`` (training configurations' default) stands for the task's protocol target,
+            ``"sample"`` on Adroit and ``"velocity"`` on MetaWorld; it is resolved before a
+            policy is built (:meth:`~torchrl_dalir.training.policy.PolicyTrainingConfig.policy_config`).
         consistency_delta, consistency_segments, consistency_alpha: its time gap, number of
             path segments and velocity-term weight.
 
@@ -78,7 +82,7 @@ class PolicyConfig:
     def __post_init__(self):
         check_choice("policy kind", self.kind, POLICY_KINDS)
         check_choice("flow_objective", self.flow_objective, ("flow_matching", "consistency"))
-        check_choice("flow_prediction", self.flow_prediction, FLOW_PREDICTIONS)
+        check_choice("flow_prediction", self.flow_prediction, (*FLOW_PREDICTIONS, BY_TASK))
         if self.obs_steps - 1 + self.action_steps > self.horizon:
             raise ValueError("obs_steps - 1 + action_steps must not exceed the horizon")
 

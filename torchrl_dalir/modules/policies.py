@@ -17,7 +17,7 @@ from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_dalir import keys
-from torchrl_dalir.modules.config import PolicyConfig
+from torchrl_dalir.modules.config import FLOW_PREDICTIONS, PolicyConfig
 from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 from torchrl_dalir.modules.unet import ConditionalUnet1D
@@ -102,6 +102,9 @@ class ChunkPolicy3D(TensorDictModuleBase):
         out_keys: Sequence[NestedKey] = (keys.ACTION_CHUNK,),
     ):
         super().__init__()
+        if config.flow_prediction not in FLOW_PREDICTIONS:  # "task": a training configuration resolves it for its task
+            raise ValueError(f"flow_prediction={config.flow_prediction!r} names no target; build the policy from a "
+                             f"resolved configuration (PolicyTrainingConfig.policy_config()) or choose one of {FLOW_PREDICTIONS}")
         self.in_keys, self.out_keys = list(in_keys), list(out_keys)
         self.config = config
         self.action_dim, self.state_dim = action_dim, state_dim
