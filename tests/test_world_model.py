@@ -85,6 +85,10 @@ def test_world_model_checkpoint_and_metrics(trained_world_model, collected, monk
     rows = collected.rows
     held_rows = held[rows[keys.TRAJECTORY_ID]]
     probabilities = torch.sigmoid(parts.scorer(encode_rows(parts.encoder, rows[held_rows])))
+    # written in place batch by batch, a ragged last batch included: the rows' latents in one pass
+    latents = encode_rows(parts.encoder, rows, batch_size=7)
+    assert len(rows) % 7 and latents.dtype == torch.float32
+    torch.testing.assert_close(latents, parts.encoder(rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]), rtol=1e-5, atol=1e-6)
     brier = ((probabilities - rows[keys.COMPLETION_TARGET][held_rows]) ** 2).mean().item()
     assert parts.metrics["brier"] == pytest.approx(brier, abs=1e-6) and parts.metrics["held_out_rows"] == held_rows.sum()
     assert parts.metrics["wm_mse"] != parts.metrics["no_change_mse"]
