@@ -49,7 +49,7 @@ def main(argv: list[str]) -> None:
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(0)
     policy_cfg = parse_config(PolicyTrainingConfig, ["task=disassemble"], PRESETS)
-    policy = make_policy(policy_cfg.policy_config(), action_dim=4, state_dim=4)
+    policy = make_policy(policy_cfg.resolved().model, action_dim=4, state_dim=4)
     policy.fit_normalizers(torch.rand(100, 3), torch.rand(100, 4), torch.rand(100, 4))
     encoder = LatentEncoder.from_policy(policy).eval().requires_grad_(False)
     rows = TensorDict({keys.POINT_CLOUD: torch.rand(cfg.rows, cfg.num_points, 3), keys.AGENT_POS: torch.rand(cfg.rows, 4)}, [cfg.rows])

@@ -75,7 +75,7 @@ def test_the_fm_target_is_the_tasks_unless_named_and_velocity_on_adroit_warns():
     def target(args, config_class=PolicyTrainingConfig, presets=POLICY_PRESETS):
         cfg = parse_config(config_class, args, presets)
         cfg = getattr(cfg, "policy_training", cfg)
-        return cfg.model.flow_prediction, cfg.policy_config().flow_prediction
+        return cfg.model.flow_prediction, cfg.resolved().model.flow_prediction
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -204,6 +204,13 @@ def test_a_training_stage_refuses_a_checkpoint_trained_with_other_settings(tmp_p
         trained_as_asked("policy", job("policy=fm").policy_training, training_finished)(path)
     torch.save({"config": config_dict(trained), "step": 10, "num_steps": 30}, path)  # interrupted: resumed, not refused
     assert not trained_as_asked("policy", trained, training_finished)(path)
+    # FM's target: a checkpoint records the task's (resolved) one, which a job that leaves it to the task asks for
+    fm = job("policy=fm").policy_training
+    assert (fm.model.flow_prediction, fm.resolved().model.flow_prediction) == ("task", "velocity")
+    torch.save({"config": config_dict(fm.resolved()), "step": 30, "num_steps": 30}, path)
+    assert trained_as_asked("policy", fm.resolved(), training_finished)(path)
+    with pytest.raises(ValueError, match=r"'flow_prediction': 'velocity'.*\(this job: .*'flow_prediction': 'sample'"):
+        trained_as_asked("policy", job("policy=fm", "policy_training.model.flow_prediction=sample").policy_training.resolved(), training_finished)(path)
 
 
 def test_main_job_calibration_design_failures_calls_calibrate_on_failures(tmp_path, monkeypatch):

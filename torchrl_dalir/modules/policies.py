@@ -104,7 +104,7 @@ class ChunkPolicy3D(TensorDictModuleBase):
         super().__init__()
         if config.flow_prediction not in FLOW_PREDICTIONS:  # "task": a training configuration resolves it for its task
             raise ValueError(f"flow_prediction={config.flow_prediction!r} names no target; build the policy from a "
-                             f"resolved configuration (PolicyTrainingConfig.policy_config()) or choose one of {FLOW_PREDICTIONS}")
+                             f"resolved configuration (PolicyTrainingConfig.resolved()) or choose one of {FLOW_PREDICTIONS}")
         self.in_keys, self.out_keys = list(in_keys), list(out_keys)
         self.config = config
         self.action_dim, self.state_dim = action_dim, state_dim

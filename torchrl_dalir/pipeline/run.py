@@ -77,7 +77,7 @@ def run_pipeline(cfg: PipelineConfig) -> Path:
     # 2. The base policy learns from the demos alone (the data asymmetry).
     # (an interrupted training leaves a checkpoint behind: the stage resumes it)
     stage("policy", cfg, policy_path, lambda: train_policy(cfg.policy_training),
-          finished=trained_as_asked("policy", cfg.policy_training, training_finished))
+          finished=trained_as_asked("policy", cfg.policy_training.resolved(), training_finished))
 
     # 3. Mixed-quality data: noisy experts and rollouts of the trained base policy, all labeled.
     base_rollouts = Source("base_policy", cfg.base_policy_rollouts, policy=partial(policy_actor, str(policy_path)), expert=False, history=2)

@@ -76,12 +76,13 @@ class PolicyTrainingConfig:
             check_at_least(name, getattr(self, name), minimum)
         distributed.check_global_batch("batch_size", self.batch_size)
 
-    def policy_config(self) -> PolicyConfig:
-        """``model`` with the task's protocol target for ``flow_prediction="task"``
-        (:data:`PROTOCOL_FLOW_PREDICTION`): the configuration the policy is built from."""
+    def resolved(self) -> PolicyTrainingConfig:
+        """This configuration with the task's FM target (:data:`PROTOCOL_FLOW_PREDICTION`) in place of
+        ``model.flow_prediction="task"``: what a run trains, its checkpoint records and a finished
+        run is compared against."""
         if self.model.flow_prediction != BY_TASK:
-            return self.model
-        return replace(self.model, flow_prediction=PROTOCOL_FLOW_PREDICTION[get_task(self.task).suite])
+            return self
+        return replace(self, model=replace(self.model, flow_prediction=PROTOCOL_FLOW_PREDICTION[get_task(self.task).suite]))
 
     def run_dir(self) -> Path:
         return Path(self.out) / self.task / f"{self.policy}_seed{self.seed}"
@@ -127,6 +128,7 @@ def _loss_module(policy: ChunkPolicy3D):
 def train_policy(cfg: PolicyTrainingConfig) -> Path:
     """Trains (or resumes) a base policy on ``cfg.task``'s demos; returns the checkpoint path.
     Under torchrun, data-parallel over the ranks (only rank 0 writes)."""
+    cfg = cfg.resolved()
     device = distributed.setup(cfg.device)
     torch.manual_seed(cfg.seed)
     demos = TrajectoryDataset.load(cfg.demos_dir(), task=cfg.task)
@@ -134,7 +136,7 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
     rows = demos.rows
     acting = ~rows[keys.IS_FINAL]
     policy = make_policy(
-        cfg.policy_config(),
+        cfg.model,
         action_dim=rows[keys.ACTION].shape[-1],
         state_dim=rows[keys.AGENT_POS].shape[-1],
         task=cfg.task,
