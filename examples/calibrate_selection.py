@@ -47,7 +47,7 @@ class Config:
     episodes: int = 30
     seed: int = VALIDATION_SEED  # validation episodes: any evaluation seed but the test seed
     test_seed: int = TEST_SEED  # the evaluation seed of the episodes you report: refused here
-    grid: str = "all"  # the entries evaluated: margin (the default rule's settings) | all (and the other rules)
+    grid: str = "all"  # the entries evaluated: margin (the default rule's settings) | all (and the other rules) | argmax (the base policy and the ensemble arg-max only)
     rule: str | None = None  # choose only among this rule's settings (default: among every entry of the grid)
     alpha: float = ALPHA  # evidence needed to leave the base policy: one-sided sign-test p-value on the validation episodes (1: the best entry)
     confirm_episodes: int = 0  # > 0: the chosen entry must win again on this many fresh validation episodes (evaluation seed seed + 1)

@@ -205,7 +205,8 @@ def test_calibration_keeps_a_chosen_rule_only_if_fresh_validation_episodes_confi
 
     from torchrl_dalir.evaluation.compare import BASE, DALIR
 
-    grid = (SelectionConfig("margin", "ensemble", margin=1.0), SelectionConfig("argmax", "ensemble"))
+    grid = calibration.GRIDS["argmax"]  # one alternative: the base policy (margin 1) or the ensemble arg-max
+    assert grid == (SelectionConfig("margin", "ensemble", k=1.0, margin=1.0), SelectionConfig("argmax", "ensemble"))
     outcomes = {  # (evaluation seed, rule) -> successes of 8 episodes; the arg-max wins 4 / 0 on seed 1
         (1, None): "11000000", (1, "margin"): "11000000", (1, "argmax"): "11111100",
         (2, None): "10100000", (2, "argmax"): "10100000",  # ... and ties on the fresh seed 2

@@ -81,7 +81,7 @@ class PipelineConfig:
     calibration_seed: int = 1
     calibration_alpha: float = ALPHA
     calibration_confirm_episodes: int = 0
-    calibration_grid: str = "all"  # all (the margin settings and the other rules) | margin (the margin settings only)
+    calibration_grid: str = "all"  # all (the margin settings and the other rules) | margin (the margin settings only) | argmax (base policy or ensemble arg-max)
     calibration_design: str = "fixed"  # fixed | failures (sized by the base policy's failures)
     calibration_failures: int = FAILURES
     num_candidates: int = 32
