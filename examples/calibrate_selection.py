@@ -2,10 +2,11 @@
 
     python examples/calibrate_selection.py policy_checkpoint=.../checkpoint.pt world_model=.../world_model.pt
     python examples/calibrate_selection.py ... episodes=50 write=false     # only report
-    python examples/calibrate_selection.py ... design=failures failures=10  # sized by the base policy's failures
+    python examples/calibrate_selection.py ... grid=all confirm_episodes=30  # nine settings, the winner confirmed
+    python examples/calibrate_selection.py ... grid=all design=failures failures=10  # sized by the base policy's failures
 
-The base policy and every rule of the grid (``evaluation.calibration``: the margin rule's
-settings, then the other rules for comparison) run on the same validation episodes (evaluation
+The base policy and every rule of the grid (``evaluation.calibration.GRIDS``; by default the
+ensemble arg-max alone, as in the main job) run on the same validation episodes (evaluation
 seed ``seed``, never the test seed 0). The best setting (of ``rule``, if given) among those that
 beat the base policy with a one-sided sign-test p-value of at most ``alpha`` (otherwise the most
 conservative setting, the base policy itself) is written into the world-model checkpoint, which ``RerankingActor.from_checkpoints`` and ``examples/evaluate.py`` then use.
@@ -47,7 +48,7 @@ class Config:
     episodes: int = 30
     seed: int = VALIDATION_SEED  # validation episodes: any evaluation seed but the test seed
     test_seed: int = TEST_SEED  # the evaluation seed of the episodes you report: refused here
-    grid: str = "all"  # the entries evaluated: margin (the default rule's settings) | all (and the other rules) | argmax (the base policy and the ensemble arg-max only)
+    grid: str = "argmax"  # the entries evaluated: argmax (the base policy and the ensemble arg-max only, the main job's) | all (the margin rule's settings and the other rules; add confirm_episodes=30) | margin
     rule: str | None = None  # choose only among this rule's settings (default: among every entry of the grid)
     alpha: float = ALPHA  # evidence needed to leave the base policy: one-sided sign-test p-value on the validation episodes (1: the best entry)
     confirm_episodes: int = 0  # > 0: the chosen entry must win again on this many fresh validation episodes (evaluation seed seed + 1)
@@ -96,5 +97,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor; with DALIR_MALLOC=reuse, re-executes under glibc malloc tunables
+    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

@@ -93,7 +93,6 @@ PRESETS = {
         "job": [
             "preset=smoke",
             "exploration_rollouts=1",
-            "calibration_grid=margin",
             "eval_methods=[base,dalir]",
             *QUIET,
         ],

@@ -298,5 +298,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor; with DALIR_MALLOC=reuse, re-executes under glibc malloc tunables
+    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

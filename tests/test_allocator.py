@@ -19,21 +19,22 @@ def untuned_environment() -> dict[str, str]:
 
 
 @glibc_linux
-def test_tuned_environment_adds_the_tunables_once_when_asked():
-    on = {SWITCH: "reuse"}
-    assert tuned_environment({**on, "PATH": "/bin"}) == {**on, "PATH": "/bin", "GLIBC_TUNABLES": MALLOC_TUNABLES}
+def test_tuned_environment_adds_the_tunables_once_unless_turned_off():
+    on = {"PATH": "/bin"}  # the default
+    assert tuned_environment(on) == {**on, "GLIBC_TUNABLES": MALLOC_TUNABLES}
+    assert tuned_environment({**on, SWITCH: "reuse"}) == {**on, SWITCH: "reuse", "GLIBC_TUNABLES": MALLOC_TUNABLES}
     # the user's other tunables are kept
     assert tuned_environment({**on, "GLIBC_TUNABLES": "glibc.cpu.x86_shstk=off"})["GLIBC_TUNABLES"] == f"glibc.cpu.x86_shstk=off:{MALLOC_TUNABLES}"
     # already set (by the user or by the re-execution itself): nothing to do
     assert tuned_environment({**on, "GLIBC_TUNABLES": MALLOC_TUNABLES}) is None
     assert tuned_environment({**on, "GLIBC_TUNABLES": "glibc.malloc.mmap_threshold=1"}) is None
-    # not asked for (the default): glibc's defaults
-    assert tuned_environment({"PATH": "/bin"}) is None and tuned_environment({SWITCH: "system"}) is None
+    # turned off: glibc's defaults
+    assert tuned_environment({**on, SWITCH: "system"}) is None
 
 
 @glibc_linux
 @pytest.mark.parametrize("opt_in", [True, False])
-def test_a_script_re_executes_once_with_its_arguments_when_asked(tmp_path, opt_in):
+def test_a_script_re_executes_once_with_its_arguments_unless_turned_off(tmp_path, opt_in):
     script = tmp_path / "script.py"
     script.write_text(textwrap.dedent("""
         import os, sys
@@ -43,8 +44,8 @@ def test_a_script_re_executes_once_with_its_arguments_when_asked(tmp_path, opt_i
         print("main", os.getpid(), sys.argv[1:], os.environ.get("GLIBC_TUNABLES"), flush=True)
     """))
     env = untuned_environment()
-    if opt_in:
-        env[SWITCH] = "reuse"
+    if not opt_in:
+        env[SWITCH] = "system"
     out = subprocess.run([sys.executable, "-u", str(script), "a=1", "b=[2,3]"], env=env, capture_output=True, text=True, check=True).stdout.split("\n")
     starts = [line for line in out if line.startswith("start")]
     mains = [line for line in out if line.startswith("main")]
@@ -63,6 +64,6 @@ def test_a_script_run_inside_another_program_does_not_re_execute_it(tmp_path):
     script.write_text("from torchrl_dalir.allocator import reuse_freed_memory\nreuse_freed_memory(__file__)\nprint('ran')\n")
     launcher = tmp_path / "launcher.py"
     launcher.write_text(f"import os, runpy\nprint('launcher', os.getpid(), flush=True)\nrunpy.run_path({str(script)!r}, run_name='__main__')\nprint('after', flush=True)\n")
-    env = {**untuned_environment(), SWITCH: "reuse"}
+    env = untuned_environment()
     out = subprocess.run([sys.executable, "-u", str(launcher)], env=env, capture_output=True, text=True, check=True).stdout.split()
     assert out.count("launcher") == 1 and out[-2:] == ["ran", "after"]

@@ -163,18 +163,21 @@ def test_the_cpu_preset_is_the_reranking_protocol_and_run_commands_name_only_dep
         return cfg, json.loads(json.dumps(config_dict(cfg)))
 
     cfg, config = run()
-    protocol = (cfg.policy_training.num_steps, cfg.world_model.encoder, cfg.exploration_rollouts, cfg.calibration_confirm_episodes)
-    assert protocol == (1000, "frozen", 60, 30)
+    protocol = (cfg.policy_training.num_steps, cfg.world_model.encoder, cfg.exploration_rollouts, cfg.calibration_grid, cfg.calibration_confirm_episodes)
+    assert protocol == (1000, "frozen", 60, "argmax", 0)
     assert cfg.run_name() == "dp_seed1_frozen+explore_dp_seed1"  # the folder of runs that set the protocol by hand
     head = "python examples/train_dp3_wm.py task=stick-pull seed=1 policy=dp preset=cpu"
     assert command(config) == head
     # a run of the earlier protocol names what it set apart from today's preset
-    _, old = run("policy_training.num_steps=2000", "world_model.encoder=finetune", "exploration_rollouts=0", "calibration_confirm_episodes=0")
-    assert command(old) == (f"{head} exploration_rollouts=0 calibration_confirm_episodes=0 "
+    _, old = run("policy_training.num_steps=2000", "world_model.encoder=finetune", "exploration_rollouts=0", "calibration_grid=all",
+                 "calibration_confirm_episodes=30")
+    assert command(old) == (f"{head} exploration_rollouts=0 calibration_confirm_episodes=30 calibration_grid=all "
                             "policy_training.num_steps=2000 world_model.encoder=finetune")
-    # a run made before a setting existed ran at the value it was added with (here: no exploration, no confirmation)
-    older = {key: value for key, value in old.items() if key not in ("exploration_rollouts", "calibration_confirm_episodes")}
+    # a run made before a setting existed ran at the value it was added with (here: no exploration, all nine settings)
+    older = {key: value for key, value in old.items() if key not in ("exploration_rollouts", "calibration_grid")}
     assert command(older) == command(old)
+    with pytest.warns(UserWarning, match="set calibration_confirm_episodes=30"):  # nine settings, the luckiest unconfirmed
+        run("calibration_grid=all")
     # exploration data named by hand (none collected) is a departure too
     _, by_hand = run("exploration_rollouts=0", "world_model.extra_data=[explore_dp_seed1]")
     assert command(by_hand) == f"{head} exploration_rollouts=0 world_model.extra_data=[explore_dp_seed1]"

@@ -8,10 +8,10 @@ than with the memory kept and the main job's policy training 1.8x longer (347 vs
 it kernel time spent zeroing fresh pages. The tunables only take effect at process start, hence
 :func:`reuse_freed_memory` re-executes the script once with them set; child processes (collector
 workers, torchrun ranks) inherit them. Results do not change (the same kernels on the same
-values). Opt-in (``DALIR_MALLOC=reuse``): a main job that ran every stage in one process reached
-a peak of 19.1 GiB in its world-model stage under these tunables, against 2.0 GiB for the same
-stage with glibc's defaults (freed memory is never returned, and the heap can fragment); use it
-where memory is plentiful, e.g. one job per machine.
+values). Freed memory is never returned to the system, so code that keeps small pieces between
+large freed blocks fragments the heap: the world-model stage's encoder pass once grew it to
+19.1 GiB that way (fixed in ``encode_rows``; a DP main job now peaks at 3.1 GiB under the
+tunables). ``DALIR_MALLOC=system`` keeps glibc's defaults.
 """
 
 from __future__ import annotations
@@ -23,16 +23,16 @@ from pathlib import Path
 
 # Allocations up to 4 GiB come from the heap and freed memory stays there for reuse.
 MALLOC_TUNABLES = "glibc.malloc.mmap_threshold=4294967296:glibc.malloc.trim_threshold=4294967296"
-SWITCH = "DALIR_MALLOC"  # "reuse": re-execute under MALLOC_TUNABLES; anything else (the default): glibc's defaults
+SWITCH = "DALIR_MALLOC"  # "system": keep glibc's defaults; anything else (the default): re-execute under MALLOC_TUNABLES
 
 
 def tuned_environment(environ: dict[str, str] | None = None) -> dict[str, str] | None:
-    """The environment to re-execute with, or ``None`` when there is nothing to do (not asked for
-    with ``DALIR_MALLOC=reuse``, not glibc Linux, or the tunables already set by the user or a
+    """The environment to re-execute with, or ``None`` when there is nothing to do (turned off
+    with ``DALIR_MALLOC=system``, not glibc Linux, or the tunables already set by the user or a
     previous re-execution)."""
     environ = dict(os.environ if environ is None else environ)
     tunables = environ.get("GLIBC_TUNABLES", "")
-    if sys.platform != "linux" or platform.libc_ver()[0] != "glibc" or environ.get(SWITCH) != "reuse" or "glibc.malloc.mmap_threshold" in tunables:
+    if sys.platform != "linux" or platform.libc_ver()[0] != "glibc" or environ.get(SWITCH) == "system" or "glibc.malloc.mmap_threshold" in tunables:
         return None
     environ["GLIBC_TUNABLES"] = f"{tunables}:{MALLOC_TUNABLES}" if tunables else MALLOC_TUNABLES
     return environ

@@ -30,6 +30,8 @@ SHORT = {name: short for short, name in METHODS.items()}  # "base policy" -> "ba
 # own settings that do not change a run's results: not part of the command
 _DERIVED = {"out", "data", "mixed_name", "policy_checkpoint", "task", "seed", "policy", "device"}
 _NOT_RESULTS = {"out", "preset", "task", "seed", "policy", "redo", "until"}
+# settings whose default changed after they were added: the value a run that predates them ran at
+_ADDED_AS = {"calibration_grid": "all"}
 
 
 def variant_label(run_name: str, policy: str, seed: int) -> str:
@@ -59,7 +61,7 @@ def command(config: dict) -> str:
     default = json.loads(json.dumps(default))  # as the run's results.json holds it (tuples become lists)
     base = _flatten(default)
     # a setting that the run's code did not have yet ran at the value it was added with
-    own = {**_flatten(json.loads(json.dumps(config_dict(PipelineConfig())))), **_flatten(config)}
+    own = {**_flatten(json.loads(json.dumps(config_dict(PipelineConfig())))), **_ADDED_AS, **_flatten(config)}
     explore = f"explore_{config['policy']}_seed{config['seed']}"
     for flat in (own, base):  # the exploration data joins the world model's data by itself
         if flat.get("exploration_rollouts"):

@@ -206,7 +206,7 @@ def encode_rows(encoder: LatentEncoder, rows: TensorDict, batch_size: int = 1024
     """The latent of every row, ``[R, L]``, written into one tensor allocated up front.
 
     Collecting per-batch pieces instead left small live blocks between each batch's large freed
-    activations: a heap that is never trimmed (``DALIR_MALLOC=reuse``) then grew with every batch
+    activations: a heap that is never trimmed (the examples' malloc tunables) then grew with every batch
     (``examples/benchmark_encoder_memory.py``, three passes over 20,000 rows: a 7.9 GiB peak,
     against 2.4 GiB written in place).
     """
