@@ -228,7 +228,7 @@ def test_main_job_calibration_design_failures_calls_calibrate_on_failures(tmp_pa
         return {"design": "failures", "episodes": 40, "chosen": "margin(ensemble, k=1, margin=1)"}
 
     monkeypatch.setattr(run, "calibrate_on_failures", fake)
-    cfg = parse_config(PipelineConfig, ["preset=cpu", "seed=2", "calibration_design=failures", "calibration_failures=7", f"out={tmp_path}"], PRESETS)
+    cfg = parse_config(PipelineConfig, ["preset=cpu", "seed=2", "calibration_design=failures", "calibration_failures=7", "calibration_grid=all", f"out={tmp_path}"], PRESETS)
     run.calibrate_and_record(cfg, tmp_path / "p.pt", tmp_path / "w.pt", tmp_path / "calibration.json")
     assert calls == [{"failures": 7, "grid": calibration.GRIDS["all"], "alpha": calibration.ALPHA, "seed": 1, "test_seed": 0, "device": "cpu",
                       "num_candidates": 32, "dropout": 0.2, "actor_seed": 2}]
