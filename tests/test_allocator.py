@@ -33,8 +33,8 @@ def test_tuned_environment_adds_the_tunables_once_unless_turned_off():
 
 
 @glibc_linux
-@pytest.mark.parametrize("opt_in", [True, False])
-def test_a_script_re_executes_once_with_its_arguments_unless_turned_off(tmp_path, opt_in):
+@pytest.mark.parametrize("tuned", [True, False])
+def test_a_script_re_executes_once_with_its_arguments_unless_turned_off(tmp_path, tuned):
     script = tmp_path / "script.py"
     script.write_text(textwrap.dedent("""
         import os, sys
@@ -44,14 +44,14 @@ def test_a_script_re_executes_once_with_its_arguments_unless_turned_off(tmp_path
         print("main", os.getpid(), sys.argv[1:], os.environ.get("GLIBC_TUNABLES"), flush=True)
     """))
     env = untuned_environment()
-    if not opt_in:
+    if not tuned:
         env[SWITCH] = "system"
     out = subprocess.run([sys.executable, "-u", str(script), "a=1", "b=[2,3]"], env=env, capture_output=True, text=True, check=True).stdout.split("\n")
     starts = [line for line in out if line.startswith("start")]
     mains = [line for line in out if line.startswith("main")]
     pid = starts[0].split()[1]
     assert len(mains) == 1 and mains[0].startswith(f"main {pid} ['a=1', 'b=[2,3]']")  # the same process (execve), the same arguments
-    if not opt_in:
+    if not tuned:
         assert len(starts) == 1 and mains[0].endswith("None")
     else:
         assert starts == [f"start {pid}"] * 2 and mains[0].endswith(MALLOC_TUNABLES)
