@@ -114,10 +114,11 @@ class PipelineConfig:
         if self.calibration_episodes and confirms and self.calibration_seed + 1 == self.eval_seed:
             raise ValueError(f"the confirmation's validation episodes (evaluation seed calibration_seed + 1 = {self.eval_seed}) "
                              "would be the test episodes: choose another calibration_seed")
-        if self.calibration_episodes and self.calibration_design == "fixed" and not self.calibration_confirm_episodes and len(GRIDS[self.calibration_grid]) > 2:
-            warnings.warn(f"calibration_grid={self.calibration_grid} compares {len(GRIDS[self.calibration_grid]) - 1} settings with the base policy on the "
+        alternatives = len(GRIDS[self.calibration_grid]) - 1  # the first entry is the base policy
+        if self.calibration_episodes and self.calibration_design == "fixed" and not self.calibration_confirm_episodes and alternatives > 1:
+            warnings.warn(f"calibration_grid={self.calibration_grid} compares {alternatives} settings with the base policy on the "
                           "same episodes: the best of them clears the sign-test bar by luck more often than calibration_alpha says; "
-                          "set calibration_confirm_episodes=30", stacklevel=2)
+                          f"set calibration_confirm_episodes={self.calibration_episodes}", stacklevel=2)
         if self.calibration_episodes and self.calibration_seed == self.eval_seed:
             raise ValueError(f"calibration_seed must differ from eval_seed ({self.eval_seed}): the rule is chosen on validation, not test, episodes")
         check_choice("until", self.until, STAGES)
