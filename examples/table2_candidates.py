@@ -34,7 +34,7 @@ from torchrl_dalir.evaluation.plots import plot_success_by_task
 from torchrl_dalir.pipeline.records import outcome_string
 from torchrl_dalir.reranking import CleanObservation, GaussianObservationNoise, PointDropout, SearchConfig
 from torchrl_dalir.reranking.selection import SelectionConfig
-from torchrl_dalir.utils import atomic_write
+from torchrl_dalir.utils import atomic_write, measured_once
 
 INPUT_SOURCES = {"dropout": "point dropout", "noise": "observation noise", "resample": "policy samples"}
 SEARCH_SOURCES = {"shooting": "random shooting", "cem": "CEM", "mppi": "MPPI", "gradient": "score-gradient ascent"}
@@ -83,13 +83,8 @@ def evaluate_run(index: int, policy_path: str, world_model_path: str, cfg: Confi
     settings = {k: v for k, v in config_dict(cfg).items() if k not in ("policies", "world_models", "sources", "out")}
 
     def measured(name: str, measure) -> dict:
-        inputs = json.loads(json.dumps({"policy": policy_path, "world_model": world_model_path, "method": name, **settings}))
-        part = Path(cfg.out) / "parts" / f"{index}_{task}" / f"{name}.json"
-        if part.exists() and (stored := json.loads(part.read_text()))["inputs"] == inputs:
-            return stored["row"]
-        row = measure()
-        atomic_write(part, json.dumps({"inputs": inputs, "row": row}))
-        return row
+        inputs = {"policy": policy_path, "world_model": world_model_path, "method": name, **settings}
+        return measured_once(Path(cfg.out) / "parts" / f"{index}_{task}" / f"{name}.json", inputs, measure)
 
     methods = {"base": measured("base", lambda: evaluate_checkpoints(policy_path, world_model_path, methods=["base"], **common)[BASE])}
     for name in cfg.sources:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import subprocess
 import tempfile
@@ -54,6 +55,30 @@ def atomic_write(path: str | Path, content: str | bytes | Callable[[BinaryIO], o
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def measured_once(part: str | Path, inputs: dict, measure: Callable[[], dict]) -> dict:
+    """``measure()``'s result, kept in the JSON file ``part`` as soon as it is measured; a later call
+    with the same ``inputs`` (JSON-serialisable: what the result depends on) reads it back instead of
+    measuring again, so an interrupted table resumes at the row it was measuring. Different inputs
+    measure anew and replace the file.
+
+    Example:
+        >>> import tempfile
+        >>> part, calls = Path(tempfile.mkdtemp()) / "parts" / "base.json", []
+        >>> measure = lambda: calls.append(1) or {"success_rate": 0.5}
+        >>> measured_once(part, {"episodes": 2}, measure), measured_once(part, {"episodes": 2}, measure), len(calls)
+        ({'success_rate': 0.5}, {'success_rate': 0.5}, 1)
+        >>> measured_once(part, {"episodes": 3}, measure) and len(calls)
+        2
+    """
+    inputs = json.loads(json.dumps(inputs))  # as the file holds them (tuples become lists)
+    part = Path(part)
+    if part.exists() and (stored := json.loads(part.read_text()))["inputs"] == inputs:
+        return stored["row"]
+    row = measure()
+    atomic_write(part, json.dumps({"inputs": inputs, "row": row}))
+    return row
 
 
 def writable_dir(path: str | Path, setting: str = "out") -> Path:

@@ -139,6 +139,31 @@ def plot_data_scale(table: list[dict], path: str | Path, title: str = "Mixed-qua
     return _save(fig, path)
 
 
+def plot_candidate_scaling(table: list[dict], path: str | Path, title: str = "Success against the number of candidates") -> Path:
+    """Success against the number of candidates N (log scale), one line per row of ``table`` (a run
+    and a reranking method: ``run``, ``method``, ``candidates`` and ``success``, N = 1 being the base
+    policy), as in the paper's Figure 3(b).
+
+    Example:
+        >>> import tempfile
+        >>> table = [{"run": "disassemble dp", "method": "argmax", "candidates": [1, 8, 32], "success": [0.72, 0.8, 0.86]}]
+        >>> plot_candidate_scaling(table, Path(tempfile.mkdtemp()) / "doc_scaling.png").name
+        'doc_scaling.png'
+    """
+    fig, ax = plt.subplots(figsize=(4.8, 3.2), dpi=90)
+    for row in table:
+        ax.plot(row["candidates"], [100 * s for s in row["success"]], marker="o", label=f"{row['run']}, {row['method']}")
+    counts = sorted({n for row in table for n in row["candidates"]})
+    ax.set_xscale("log", base=2)
+    ax.set_xticks(counts, [str(n) for n in counts])
+    ax.set_xlabel("candidates N (1: the base policy)")
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 100)
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    return _save(fig, path)
+
+
 def plot_candidate_outcomes(records: list[dict], path: str | Path, title: str = "") -> Path:
     """Imagined against real outcomes of DALI-R's candidates (records of
     :func:`~torchrl_dalir.evaluation.candidate_outcomes.candidate_outcomes`): (left) every

@@ -1,0 +1,128 @@
+"""Paper Figure 3(b): DALI-R's success as the number of candidates grows.
+
+    python examples/candidate_scaling.py policies=[<run>/policies/disassemble/dp_seed0/checkpoint.pt] \\
+        world_models=[<run>/world_models/dp/disassemble/seed0_frozen+explore_dp_seed0/world_model.pt]
+    python examples/candidate_scaling.py policies=[a.pt,b.pt] world_models=[a_wm.pt,b_wm.pt] candidates=[2,4,8,16,32,64] methods=[argmax,random]
+
+Every (policy, world model) pair (one task and seed each) runs the base policy once and, for each
+candidate count N in ``candidates``, each reranking method (``argmax``: the paper's arg-max of the
+state scorer; ``random``: a random pick among the same candidates; ``dalir``: the checkpoint's
+calibrated rule) over N point-dropout candidates, one of them clean, on the same test episodes.
+With common noise the clean candidate alone is the base policy, so the base policy is N = 1.
+Each row is paired with the base policy on the same episodes (the sign test), and kept in
+``<out>/parts/`` as soon as it is measured: an interrupted run resumes at the row it was measuring.
+
+Writes ``<out>/candidate_scaling.md`` (success per N), ``.json`` (with every episode's outcome) and
+``.png`` (success against N, one line per pair and method, the base policy at N = 1).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from torchrl_dalir.allocator import reuse_freed_memory
+from torchrl_dalir.checkpoints import load_policy
+from torchrl_dalir.config import check_at_least, config_dict, parse_config
+from torchrl_dalir.evaluation.compare import BASE, METHODS, evaluate_checkpoints, paired_sign_test
+from torchrl_dalir.evaluation.plots import plot_candidate_scaling
+from torchrl_dalir.pipeline.records import outcome_string
+from torchrl_dalir.utils import atomic_write, measured_once
+
+RERANKING = ("argmax", "random", "dalir")
+
+
+@dataclass
+class Config:
+    policies: list[str] = field(default_factory=lambda: ["outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"])
+    world_models: list[str] = field(default_factory=lambda: ["outputs/pipeline/world_models/fm/disassemble/seed0_frozen+explore_fm_seed0/world_model.pt"])
+    candidates: list[int] = field(default_factory=lambda: [4, 8, 16, 32])  # N (the paper's); N = 1 is the base policy itself
+    methods: list[str] = field(default_factory=lambda: ["argmax"])  # among RERANKING
+    episodes: int = 50
+    seed: int = 0  # the evaluation seed: episodes never overlap data-generation episodes
+    device: str = "cpu"
+    dropout: float = 0.2  # point-dropout probability of every candidate but the clean one
+    actor_seed: int = 0
+    common_noise: bool = True  # the clean candidate draws the base policy's own noise: N = 1 replays the base policy
+    out: str = "outputs/candidate_scaling"
+
+    def __post_init__(self):
+        unknown = set(self.methods) - set(RERANKING)
+        if unknown or not self.methods:
+            raise ValueError(f"methods must be among {list(RERANKING)}, got {self.methods}")
+        if not self.candidates:
+            raise ValueError("candidates needs at least one candidate count")
+        for n in self.candidates:
+            check_at_least("candidates", n, 2)  # one candidate is the base policy, always run
+        if len(self.policies) != len(self.world_models):
+            raise ValueError(f"{len(self.policies)} policies but {len(self.world_models)} world models: give one world model per policy")
+        self.candidates = sorted(set(self.candidates))
+
+
+def evaluate_run(index: int, policy_path: str, world_model_path: str, cfg: Config) -> dict:
+    """The base policy, then every method at every candidate count, on one (policy, world model) pair;
+    each row's episode outcomes as one string (``"0110..."``)."""
+    policy = load_policy(policy_path, cfg.device)
+    common = dict(episodes=cfg.episodes, seed=cfg.seed, device=cfg.device, dropout=cfg.dropout, actor_seed=cfg.actor_seed,
+                  common_noise=cfg.common_noise)
+    settings = {"policy": policy_path, "world_model": world_model_path, **common}
+
+    def measured(method: str, num_candidates: int) -> dict:
+        def measure():
+            row = evaluate_checkpoints(policy_path, world_model_path, methods=[method], num_candidates=num_candidates, **common)[METHODS[method]]
+            return {"success_rate": row["success_rate"], "outcomes": outcome_string(row["records"]), "seconds": row["seconds"],
+                    **({"selection": row["selection"]} if "selection" in row else {})}
+        part = Path(cfg.out) / "parts" / f"{index}_{policy.task}" / f"{method}_{num_candidates}.json"
+        return measured_once(part, {**settings, "method": method, "num_candidates": num_candidates}, measure)
+
+    base = measured("base", 1)
+    rows = {method: {str(n): measured(method, n) for n in cfg.candidates} for method in cfg.methods}
+    return {"task": policy.task, "policy_kind": policy.config.kind, "label": f"{policy.task} {policy.config.kind}",
+            "policy": policy_path, "world_model": world_model_path, "base": base, "methods": rows}
+
+
+def scaling_table(runs: list[dict]) -> list[dict]:
+    """One row per (pair, method): success per candidate count, N = 1 being the base policy, and per
+    count the test episodes only the base policy / only the method solved, with the sign test."""
+    table = []
+    for run in runs:
+        base = [c == "1" for c in run["base"]["outcomes"]]
+        for method, by_n in run["methods"].items():
+            table.append({"run": run["label"], "method": method, "candidates": [1, *map(int, by_n)],
+                          "success": [run["base"]["success_rate"], *(row["success_rate"] for row in by_n.values())],
+                          "vs_base": {n: paired_sign_test(base, [c == "1" for c in row["outcomes"]]) for n, row in by_n.items()}})
+    return table
+
+
+def markdown(table: list[dict], episodes: int) -> str:
+    counts = sorted({n for row in table for n in row["candidates"]})
+    lines = ["| run | method | " + " | ".join("N = 1 (base)" if n == 1 else f"N = {n}" for n in counts) + " |",
+             "| --- | --- |" + " --- |" * len(counts)]
+    for row in table:
+        cells = dict(zip(row["candidates"], row["success"]))
+        text = [f"{100 * cells[1]:.1f}"]
+        for n in counts[1:]:
+            test = row["vs_base"].get(str(n))
+            text.append("-" if test is None else f"{100 * cells[n]:.1f} ({test['base_only']} / {test['dalir_only']}, p = {test['p_value']:.2f})")
+        lines.append(f"| {row['run']} | {row['method']} | " + " | ".join(text) + " |")
+    return "\n".join(lines) + (f"\n\nSuccess (%) on {episodes} test episodes per run; in brackets the episodes only the base "
+                               "policy / only the method solved, and the two-sided sign test.\n")
+
+
+def main(argv: list[str]) -> None:
+    cfg: Config = parse_config(Config, argv)
+    runs = [evaluate_run(i, p, w, cfg) for i, (p, w) in enumerate(zip(cfg.policies, cfg.world_models))]
+    table = scaling_table(runs)
+    text = markdown(table, cfg.episodes)
+    print(text)
+    out = Path(cfg.out)
+    atomic_write(out / "candidate_scaling.md", text)
+    atomic_write(out / "candidate_scaling.json", json.dumps({"config": config_dict(cfg), "table": table, "runs": runs}, indent=1))
+    plot_candidate_scaling(table, out / "candidate_scaling.png")
+
+
+if __name__ == "__main__":
+    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    main(sys.argv[1:])
