@@ -7,7 +7,9 @@ of ``candidates`` chunks from one observation, split into the encoder (per-point
 state MLP) and the generator (DDIM or Euler steps). Diversity: mean pairwise L2 distance between
 ``candidates`` chunks from one demo observation, when only the noise is re-sampled, under point
 dropout with fresh noise, and under point dropout with the same noise; averaged over
-``observations`` observations spread evenly over the demos.
+``observations`` observations spread evenly over the demos. With ``plot=true`` (the default) the
+first observation's chunks are drawn on their two principal components,
+``<out folder>/candidates_<task>_<kind>.png`` (the paper's Figure 3(c)).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import parse_config
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
+from torchrl_dalir.evaluation.plots import plot_candidate_spread
 from torchrl_dalir.evaluation.timing import median_ms
 from torchrl_dalir.utils import atomic_write
 
@@ -41,6 +44,7 @@ class Config:
     repeats: int = 30
     threads: int = 2
     seed: int = 0
+    plot: bool = True  # draw the first observation's chunks (paper Figure 3(c)) next to out
     out: str = "outputs/benchmarks/policy.json"
 
 
@@ -51,17 +55,18 @@ def mean_pairwise_distance(chunks: torch.Tensor) -> float:
     return (d.sum() / (n * (n - 1))).item()
 
 
-def chunk_diversity(policy, cloud, agent_pos, n: int, dropout: float, g: torch.Generator) -> dict[str, float]:
-    """Mean pairwise distance of ``n`` chunks from one observation under three sources of variety."""
+def candidate_chunks(policy, cloud, agent_pos, n: int, dropout: float, g: torch.Generator) -> dict[str, torch.Tensor]:
+    """``n`` chunks ``[n, H, A]`` from one observation under three sources of variety: the sampling
+    noise alone, point dropout with fresh noise (DALI-R's candidates) and point dropout alone."""
     cond = policy.encode(cloud, agent_pos)
     keep = torch.rand(n, *cloud.shape[1:3], generator=g) >= dropout
     keep[0] = True  # the clean observation is always one candidate
     dropped = policy.condition(policy.point_features(cloud).expand(n, -1, -1, -1), agent_pos.expand(n, -1, -1), keep)
     same_noise = torch.randn(1, policy.config.horizon, policy.action_dim, generator=g).expand(n, -1, -1)
     return {
-        "noise_only": mean_pairwise_distance(policy.sample(cond.expand(n, -1), g)),
-        "dropout_fresh_noise": mean_pairwise_distance(policy.sample(dropped, g)),
-        "dropout_same_noise": mean_pairwise_distance(policy.sample(dropped, noise=same_noise)),
+        "noise_only": policy.sample(cond.expand(n, -1), g),
+        "dropout_fresh_noise": policy.sample(dropped, g),
+        "dropout_same_noise": policy.sample(dropped, noise=same_noise),
     }
 
 
@@ -92,9 +97,12 @@ def main(argv: list[str]) -> None:
                 f"generator_ms_batch{n}": median_ms(lambda: policy.sample(cond1.expand(n, -1), g), cfg.warmup, cfg.repeats),
             }
             # Diversity of n chunks from one observation, averaged over observations.
-            diversity = [chunk_diversity(policy, c, a, n, cfg.dropout, g) for c, a in observations]
-            for name in diversity[0]:
-                row[f"diversity_{name}"] = sum(d[name] for d in diversity) / len(diversity)
+            chunks = [candidate_chunks(policy, c, a, n, cfg.dropout, g) for c, a in observations]
+            for name in chunks[0]:
+                row[f"diversity_{name}"] = sum(mean_pairwise_distance(c[name]) for c in chunks) / len(chunks)
+            if cfg.plot:
+                plot_candidate_spread(chunks[0], Path(cfg.out).parent / f"candidates_{policy.task}_{policy.config.kind}.png",
+                                      title=f"{policy.task} {policy.config.kind}: {n} chunks from one observation")
             rows.append(row)
             print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
     atomic_write(cfg.out, json.dumps(rows, indent=1))

@@ -164,6 +164,33 @@ def plot_candidate_scaling(table: list[dict], path: str | Path, title: str = "Su
     return _save(fig, path)
 
 
+def plot_candidate_spread(chunks: dict, path: str | Path, title: str = "") -> Path:
+    """Action chunks from one observation, one set per source of variety (``{name: [n, H, A]}``
+    tensors or arrays), drawn on the two principal components of all of them together (the paper's
+    Figure 3(c): re-sampling the noise alone keeps the chunks close, point dropout spreads them).
+
+    Example:
+        >>> import tempfile, torch
+        >>> g = torch.Generator().manual_seed(0)
+        >>> chunks = {"noise_only": 0.01 * torch.randn(8, 16, 4, generator=g), "dropout": torch.randn(8, 16, 4, generator=g)}
+        >>> plot_candidate_spread(chunks, Path(tempfile.mkdtemp()) / "doc_spread.png").name
+        'doc_spread.png'
+    """
+    flat = {name: np.asarray(c, dtype=np.float64).reshape(len(c), -1) for name, c in chunks.items()}
+    stacked = np.concatenate(list(flat.values()))
+    centre = stacked.mean(0)
+    axes = np.linalg.svd(stacked - centre, full_matrices=False)[2][:2]  # the two principal directions
+    fig, ax = plt.subplots(figsize=(4.2, 3.6), dpi=90)
+    for name, points in flat.items():
+        xy = (points - centre) @ axes.T
+        ax.scatter(xy[:, 0], xy[:, 1], s=14, alpha=0.7, label=name.replace("_", " "))
+    ax.set_xlabel("first principal component")
+    ax.set_ylabel("second principal component")
+    ax.legend(fontsize=8)
+    ax.set_title(title, fontsize=9)
+    return _save(fig, path)
+
+
 def plot_candidate_outcomes(records: list[dict], path: str | Path, title: str = "") -> Path:
     """Imagined against real outcomes of DALI-R's candidates (records of
     :func:`~torchrl_dalir.evaluation.candidate_outcomes.candidate_outcomes`): (left) every
