@@ -26,7 +26,7 @@ from pathlib import Path
 from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, config_dict, parse_config
-from torchrl_dalir.evaluation.compare import BASE, METHODS, evaluate_checkpoints, paired_sign_test
+from torchrl_dalir.evaluation.compare import METHODS, evaluate_checkpoints, paired_sign_test
 from torchrl_dalir.evaluation.plots import plot_candidate_scaling
 from torchrl_dalir.pipeline.records import outcome_string
 from torchrl_dalir.utils import atomic_write, measured_once
