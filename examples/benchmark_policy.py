@@ -8,7 +8,7 @@ state MLP) and the generator (DDIM or Euler steps). Diversity: mean pairwise L2 
 ``candidates`` chunks from one demo observation, when only the noise is re-sampled, under point
 dropout with fresh noise, and under point dropout with the same noise; averaged over
 ``observations`` observations spread evenly over the demos. With ``plot=true`` (the default) the
-first observation's chunks are drawn on their two principal components,
+middle observation's chunks are drawn on their two principal components,
 ``<out folder>/candidates_<task>_<kind>.png`` (the paper's Figure 3(c)).
 """
 
@@ -44,7 +44,7 @@ class Config:
     repeats: int = 30
     threads: int = 2
     seed: int = 0
-    plot: bool = True  # draw the first observation's chunks (paper Figure 3(c)) next to out
+    plot: bool = True  # draw the middle observation's chunks (paper Figure 3(c)) next to out
     out: str = "outputs/benchmarks/policy.json"
 
 
@@ -101,7 +101,7 @@ def main(argv: list[str]) -> None:
             for name in chunks[0]:
                 row[f"diversity_{name}"] = sum(mean_pairwise_distance(c[name]) for c in chunks) / len(chunks)
             if cfg.plot:
-                plot_candidate_spread(chunks[0], Path(cfg.out).parent / f"candidates_{policy.task}_{policy.config.kind}.png",
+                plot_candidate_spread(chunks[len(chunks) // 2], Path(cfg.out).parent / f"candidates_{policy.task}_{policy.config.kind}.png",
                                       title=f"{policy.task} {policy.config.kind}: {n} chunks from one observation")
             rows.append(row)
             print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
