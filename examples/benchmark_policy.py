@@ -9,7 +9,7 @@ state MLP) and the generator (DDIM or Euler steps). Diversity: mean pairwise L2 
 dropout with fresh noise, and under point dropout with the same noise; averaged over
 ``observations`` observations spread evenly over the demos. With ``plot=true`` (the default) the
 middle observation's chunks are drawn on their two principal components,
-``<out folder>/candidates_<task>_<kind>.png`` (the paper's Figure 3(c)).
+``<out folder>/candidates_<task>_<checkpoint folder>_steps<steps>.png`` (the paper's Figure 3(c)).
 """
 
 from __future__ import annotations
@@ -101,8 +101,9 @@ def main(argv: list[str]) -> None:
             for name in chunks[0]:
                 row[f"diversity_{name}"] = sum(mean_pairwise_distance(c[name]) for c in chunks) / len(chunks)
             if cfg.plot:
-                plot_candidate_spread(chunks[len(chunks) // 2], Path(cfg.out).parent / f"candidates_{policy.task}_{policy.config.kind}.png",
-                                      title=f"{policy.task} {policy.config.kind}: {n} chunks from one observation")
+                run = Path(path).parent.name  # e.g. fm_seed0: two seeds of a task draw two files
+                plot_candidate_spread(chunks[len(chunks) // 2], Path(cfg.out).parent / f"candidates_{policy.task}_{run}_steps{steps}.png",
+                                      title=f"{policy.task} {run}, {steps} steps: {n} chunks from one observation")
             rows.append(row)
             print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
     atomic_write(cfg.out, json.dumps(rows, indent=1))

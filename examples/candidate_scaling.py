@@ -24,14 +24,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchrl_dalir.allocator import reuse_freed_memory
-from torchrl_dalir.checkpoints import load_policy
-from torchrl_dalir.config import check_at_least, config_dict, parse_config
-from torchrl_dalir.evaluation.compare import METHODS, evaluate_checkpoints, paired_sign_test
+from torchrl_dalir.checkpoints import load_policy, load_world_model
+from torchrl_dalir.config import check_at_least, check_choice, config_dict, parse_config
+from torchrl_dalir.evaluation.compare import (
+    METHODS,
+    check_evaluation_settings,
+    evaluate_checkpoints,
+    paired_sign_test,
+    replays_base_policy,
+)
 from torchrl_dalir.evaluation.plots import plot_candidate_scaling
-from torchrl_dalir.pipeline.records import outcome_string
-from torchrl_dalir.utils import atomic_write, measured_once
+from torchrl_dalir.pipeline.records import outcome_string, successes
+from torchrl_dalir.reranking.selection import SelectionConfig
+from torchrl_dalir.utils import atomic_write, measured_once, writable_dir
 
-RERANKING = ("argmax", "random", "dalir")
+RERANKING = tuple(m for m in METHODS if m != "base")  # argmax, random, dalir: each at every candidate count
+BASE_INPUTS = ("episodes", "seed", "device", "actor_seed")  # what the base policy's row depends on, besides the policy
 
 
 @dataclass
@@ -49,13 +57,13 @@ class Config:
     out: str = "outputs/candidate_scaling"
 
     def __post_init__(self):
-        unknown = set(self.methods) - set(RERANKING)
-        if unknown or not self.methods:
-            raise ValueError(f"methods must be among {list(RERANKING)}, got {self.methods}")
-        if not self.candidates:
-            raise ValueError("candidates needs at least one candidate count")
+        if not self.methods or not self.candidates:
+            raise ValueError(f"methods and candidates need at least one entry each, got {self.methods} and {self.candidates}")
+        for method in self.methods:
+            check_choice("methods", method, RERANKING)
         for n in self.candidates:
-            check_at_least("candidates", n, 2)  # one candidate is the base policy, always run
+            check_at_least("candidates (N = 1 is the base policy, always run)", n, 2)
+        check_evaluation_settings(self.episodes, self.seed, max(self.candidates), self.dropout)
         if len(self.policies) != len(self.world_models):
             raise ValueError(f"{len(self.policies)} policies but {len(self.world_models)} world models: give one world model per policy")
         self.candidates = sorted(set(self.candidates))
@@ -63,24 +71,38 @@ class Config:
 
 def evaluate_run(index: int, policy_path: str, world_model_path: str, cfg: Config) -> dict:
     """The base policy, then every method at every candidate count, on one (policy, world model) pair;
-    each row's episode outcomes as one string (``"0110..."``)."""
+    each row's episode outcomes as one string (``"0110..."``). A method whose rule keeps the clean
+    candidate (``dalir`` after a calibration that kept the base policy) replays the base policy's row,
+    and two methods with the same rule share one row."""
     policy = load_policy(policy_path, cfg.device)
-    common = dict(episodes=cfg.episodes, seed=cfg.seed, device=cfg.device, dropout=cfg.dropout, actor_seed=cfg.actor_seed,
-                  common_noise=cfg.common_noise)
-    settings = {"policy": policy_path, "world_model": world_model_path, **common}
+    rules = {"argmax": SelectionConfig(), "dalir": load_world_model(world_model_path, policy=policy).selection, "random": None}
+    settings = {k: v for k, v in config_dict(cfg).items() if k not in ("policies", "world_models", "candidates", "methods", "out")}
+    folder = Path(cfg.out) / "parts" / f"{index}_{policy.task}"
 
-    def measured(method: str, num_candidates: int) -> dict:
-        def measure():
-            row = evaluate_checkpoints(policy_path, world_model_path, methods=[method], num_candidates=num_candidates, **common)[METHODS[method]]
+    def measure(method: str, num_candidates: int):
+        def run():
+            row = evaluate_checkpoints(policy_path, world_model_path, methods=[method], num_candidates=num_candidates, **settings)[METHODS[method]]
             return {"success_rate": row["success_rate"], "outcomes": outcome_string(row["records"]), "seconds": row["seconds"],
                     **({"selection": row["selection"]} if "selection" in row else {})}
-        part = Path(cfg.out) / "parts" / f"{index}_{policy.task}" / f"{method}_{num_candidates}.json"
-        return measured_once(part, {**settings, "method": method, "num_candidates": num_candidates}, measure)
+        return run
 
-    base = measured("base", 1)
-    rows = {method: {str(n): measured(method, n) for n in cfg.candidates} for method in cfg.methods}
-    return {"task": policy.task, "policy_kind": policy.config.kind, "label": f"{policy.task} {policy.config.kind}",
-            "policy": policy_path, "world_model": world_model_path, "base": base, "methods": rows}
+    base = measured_once(folder / "base.json", {"policy": policy_path, **{k: settings[k] for k in BASE_INPUTS}}, measure("base", 1))
+    rows, by_rule = {}, {}
+    for method in cfg.methods:
+        rule = rules[method]
+        if rule is not None and replays_base_policy(rule, cfg.common_noise):
+            rows[method] = {str(n): {**base, "selection": rule.name, "seconds": 0.0, "replays": "base policy"} for n in cfg.candidates}
+            continue
+        if rule is not None and rule.name in by_rule:
+            rows[method] = by_rule[rule.name]
+            continue
+        inputs = {"policy": policy_path, "world_model": world_model_path, **settings, "method": method, "rule": rule and rule.name}
+        rows[method] = {str(n): measured_once(folder / f"{method}_{n}.json", {**inputs, "num_candidates": n}, measure(method, n))
+                        for n in cfg.candidates}
+        if rule is not None:
+            by_rule[rule.name] = rows[method]
+    return {"task": policy.task, "label": f"{policy.task} {Path(policy_path).parent.name}", "policy": policy_path,
+            "world_model": world_model_path, "base": base, "methods": rows}
 
 
 def scaling_table(runs: list[dict]) -> list[dict]:
@@ -88,36 +110,38 @@ def scaling_table(runs: list[dict]) -> list[dict]:
     count the test episodes only the base policy / only the method solved, with the sign test."""
     table = []
     for run in runs:
-        base = [c == "1" for c in run["base"]["outcomes"]]
+        base = successes(run["base"]["outcomes"])
         for method, by_n in run["methods"].items():
+            paired = {n: paired_sign_test(base, successes(row["outcomes"])) for n, row in by_n.items()}
             table.append({"run": run["label"], "method": method, "candidates": [1, *map(int, by_n)],
                           "success": [run["base"]["success_rate"], *(row["success_rate"] for row in by_n.values())],
-                          "vs_base": {n: paired_sign_test(base, [c == "1" for c in row["outcomes"]]) for n, row in by_n.items()}})
+                          "vs_base": {n: {"base_only": t["base_only"], "method_only": t["dalir_only"], "p_value": t["p_value"]}
+                                      for n, t in paired.items()}})
     return table
 
 
 def markdown(table: list[dict], episodes: int) -> str:
-    counts = sorted({n for row in table for n in row["candidates"]})
+    """Success (%) per run, method and candidate count, with the pairing against the base policy."""
+    counts = table[0]["candidates"]  # every row has the configuration's counts
     lines = ["| run | method | " + " | ".join("N = 1 (base)" if n == 1 else f"N = {n}" for n in counts) + " |",
              "| --- | --- |" + " --- |" * len(counts)]
     for row in table:
-        cells = dict(zip(row["candidates"], row["success"]))
-        text = [f"{100 * cells[1]:.1f}"]
-        for n in counts[1:]:
-            test = row["vs_base"].get(str(n))
-            text.append("-" if test is None else f"{100 * cells[n]:.1f} ({test['base_only']} / {test['dalir_only']}, p = {test['p_value']:.2f})")
-        lines.append(f"| {row['run']} | {row['method']} | " + " | ".join(text) + " |")
+        cells = [f"{100 * row['success'][0]:.1f}"]
+        for n, rate in zip(counts[1:], row["success"][1:]):
+            test = row["vs_base"][str(n)]
+            cells.append(f"{100 * rate:.1f} ({test['base_only']} / {test['method_only']}, p = {test['p_value']:.2f})")
+        lines.append(f"| {row['run']} | {row['method']} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + (f"\n\nSuccess (%) on {episodes} test episodes per run; in brackets the episodes only the base "
                                "policy / only the method solved, and the two-sided sign test.\n")
 
 
 def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
+    out = writable_dir(cfg.out)  # now, not after the episodes
     runs = [evaluate_run(i, p, w, cfg) for i, (p, w) in enumerate(zip(cfg.policies, cfg.world_models))]
     table = scaling_table(runs)
     text = markdown(table, cfg.episodes)
     print(text)
-    out = Path(cfg.out)
     atomic_write(out / "candidate_scaling.md", text)
     atomic_write(out / "candidate_scaling.json", json.dumps({"config": config_dict(cfg), "table": table, "runs": runs}, indent=1))
     plot_candidate_scaling(table, out / "candidate_scaling.png")

@@ -76,9 +76,9 @@ def measured_once(part: str | Path, inputs: dict, measure: Callable[[], dict]) -
     part = Path(part)
     if part.exists() and (stored := json.loads(part.read_text()))["inputs"] == inputs:
         return stored["row"]
-    row = measure()
-    atomic_write(part, json.dumps({"inputs": inputs, "row": row}))
-    return row
+    text = json.dumps({"inputs": inputs, "row": measure()})
+    atomic_write(part, text)
+    return json.loads(text)["row"]  # as a later call reads it back
 
 
 def writable_dir(path: str | Path, setting: str = "out") -> Path:

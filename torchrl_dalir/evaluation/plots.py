@@ -166,8 +166,9 @@ def plot_candidate_scaling(table: list[dict], path: str | Path, title: str = "Su
 
 def plot_candidate_spread(chunks: dict, path: str | Path, title: str = "") -> Path:
     """Action chunks from one observation, one set per source of variety (``{name: [n, H, A]}``
-    tensors or arrays), drawn on the two principal components of all of them together (the paper's
-    Figure 3(c): re-sampling the noise alone keeps the chunks close, point dropout spreads them).
+    tensors or arrays), drawn on the two principal components of all of them together, on equal
+    scales (the paper's Figure 3(c) shows re-sampled noise keeping the chunks close and point dropout
+    spreading them; ``docs/results/candidate_spread.json`` has what our policies do).
 
     Example:
         >>> import tempfile, torch
@@ -184,6 +185,7 @@ def plot_candidate_spread(chunks: dict, path: str | Path, title: str = "") -> Pa
     for name, points in flat.items():
         xy = (points - centre) @ axes.T
         ax.scatter(xy[:, 0], xy[:, 1], s=14, alpha=0.7, label=name.replace("_", " "))
+    ax.set_aspect("equal", adjustable="datalim")  # distances read the same along both axes
     ax.set_xlabel("first principal component")
     ax.set_ylabel("second principal component")
     ax.legend(fontsize=8)

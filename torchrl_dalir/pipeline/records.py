@@ -52,6 +52,11 @@ def outcome_string(records: list[dict]) -> str:
     return "".join("1" if r["success"] else "0" for r in records)
 
 
+def successes(outcomes: str) -> list[bool]:
+    """The per-episode successes of an :func:`outcome_string` (``"0110"`` -> ``[False, True, True, False]``)."""
+    return [c == "1" for c in outcomes]
+
+
 def command(config: dict) -> str:
     """The main-job command line of a run of ``config`` (a ``results.json``'s ``config``): its
     task, seed, policy and preset, and every setting that differs from the preset. (It sets what
@@ -118,7 +123,7 @@ def discordant(record: dict, method: str, against: str = "base") -> tuple[int, i
     whose per-episode outcomes the record does not both keep."""
     row, other = record["methods"][method], record["methods"][against]
     if "outcomes" in row and "outcomes" in other:
-        test = paired_sign_test([c == "1" for c in other["outcomes"]], [c == "1" for c in row["outcomes"]])
+        test = paired_sign_test(successes(other["outcomes"]), successes(row["outcomes"]))
         return test["base_only"], test["dalir_only"]
     return (row["base_only"], row["method_only"]) if against == "base" else None
 
