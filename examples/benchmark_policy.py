@@ -103,7 +103,7 @@ def main(argv: list[str]) -> None:
             if cfg.plot:
                 run = Path(path).parent.name  # e.g. fm_seed0: two seeds of a task draw two files
                 plot_candidate_spread(chunks[len(chunks) // 2], Path(cfg.out).parent / f"candidates_{policy.task}_{run}_steps{steps}.png",
-                                      title=f"{policy.task} {run}, {steps} steps: {n} chunks from one observation")
+                                      title=f"{policy.task} {run}, {steps} steps\n{n} chunks from one observation")
             rows.append(row)
             print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
     atomic_write(cfg.out, json.dumps(rows, indent=1))
