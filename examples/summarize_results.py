@@ -281,8 +281,14 @@ def main(argv: list[str]) -> None:
         for path in (root / "table1.json", Path(cfg.table1_json)):
             atomic_write(path, json.dumps(data, indent=1) + "\n")
         for backbone in data:
-            rows = [{"task": task, "base": [v / 100 for v in t["base"]], "dalir": [v / 100 for v in t["dalir"]]} for task, t in data[backbone].items()]
-            plot_success_by_task(rows, root / f"table1_{backbone}.png", title=f"Table 1 ({backbone.upper()}): base policy and DALI-R")
+            rows = []
+            for task, t in data[backbone].items():
+                row = {"task": task}
+                for key in ("base", "dalir"):
+                    row[key] = [v / 100 for v in t[key]]
+                    row[f"{key}_paper"] = None if t[f"paper_{key}"] is None else t[f"paper_{key}"] / 100
+                rows.append(row)
+            plot_success_by_task(rows, root / f"table1_{backbone}.png", title=f"Table 1 ({backbone.upper()}): base policy and DALI-R (black lines: the paper)")
 
 
 if __name__ == "__main__":

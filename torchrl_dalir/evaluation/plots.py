@@ -76,7 +76,8 @@ def plot_success_by_task(table: list[dict], path: str | Path, title: str = "",
                          methods: tuple[tuple[str, str], ...] = (("base", "base policy"), ("dalir", "+ DALI-R"))) -> Path:
     """Grouped bars of each method's success per task (mean over seeds, std as error bars, one dot
     per seed). ``table`` rows: ``task`` and, for every ``(key, label)`` of ``methods``, ``key``
-    (a list of per-seed rates)."""
+    (a list of per-seed rates), and optionally ``<key>_paper`` (the paper's rate, drawn as a bar-wide
+    black line, e.g. Table 1's published numbers; ``None`` where the paper has none)."""
     return plot_metric_by_task(table, path, "success (%)", title, methods, scale=100, ylim=(0, 100))
 
 
@@ -84,11 +85,12 @@ def plot_metric_by_task(table: list[dict], path: str | Path, ylabel: str, title:
                         methods: tuple[tuple[str, str], ...] = (("base", "base policy"), ("dalir", "+ DALI-R")),
                         scale: float = 1.0, ylim: tuple[float, float] | None = None) -> Path:
     """Grouped bars of each method's value of a metric per task, times ``scale`` (mean over seeds, std as
-    error bars, one dot per seed); ``table`` rows as for :func:`plot_success_by_task`, with per-seed values.
+    error bars, one dot per seed, a line at ``<key>_paper`` where a row has it); ``table`` rows as for
+    :func:`plot_success_by_task`, with per-seed values.
 
     Example:
         >>> import tempfile
-        >>> table = [{"task": "drill", "with_action": [0.02], "without_action": [0.05]}]
+        >>> table = [{"task": "drill", "with_action": [0.02], "without_action": [0.05], "with_action_paper": 0.03}]
         >>> plot_metric_by_task(table, Path(tempfile.mkdtemp()) / "doc_mse.png", "held-out latent MSE",
         ...                     methods=(("without_action", "WM w/o action"), ("with_action", "WM w/ action"))).name
         'doc_mse.png'
@@ -102,6 +104,10 @@ def plot_metric_by_task(table: list[dict], path: str | Path, ylabel: str, title:
         ax.bar(x + offset, [v.mean() for v in values], width * 0.95, yerr=[v.std() for v in values], capsize=3, label=label, alpha=0.8)
         for j, v in enumerate(values):
             ax.scatter(np.full(len(v), x[j] + offset), v, color="k", s=8, zorder=3)
+        papers = [(x[j] + offset, scale * row[f"{key}_paper"]) for j, row in enumerate(table) if row.get(f"{key}_paper") is not None]
+        if papers:
+            ax.hlines([y for _, y in papers], [c - width * 0.45 for c, _ in papers], [c + width * 0.45 for c, _ in papers],
+                      colors="k", linewidth=2, zorder=4, label="paper" if i == 0 else None)
     ax.set_xticks(x, [row["task"] for row in table])
     ax.set_ylabel(ylabel)
     if ylim is not None:
