@@ -180,6 +180,9 @@ def test_run_record_keeps_the_calibrations_confirmation_on_fresh_validation_epis
     assert validation["confirmation"] == {"episodes": 30, "seed": 2, "entry": "argmax(state)", "base": 0.4, "success_rate": 0.4333,
                                           "base_only": 3, "method_only": 4, "confirmed": False}
     assert "confirmation" not in run_record(result, "fm_seed0", {k: v for k, v in calibration.items() if k != "confirmation"})["validation"]
+    # the command names the calibration's alpha where it is not today's (a run from before the setting)
+    assert "calibration_alpha" not in run_record(result, "fm_seed0", calibration)["command"]
+    assert " calibration_alpha=1.0 " in run_record(result, "fm_seed0", {**calibration, "alpha": 1.0})["command"]
 
 
 def test_run_record_of_a_calibration_sized_by_failures():

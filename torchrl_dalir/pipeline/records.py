@@ -82,6 +82,8 @@ def run_record(result: dict, run: str, calibration: dict | None = None, commit: 
     ``run`` and its ``calibration.json`` (if it was calibrated). ``commit`` names the code that
     made the run when ``result`` does not (results written before they named it)."""
     config = result["config"]
+    if calibration and calibration.get("alpha") is not None:  # runs from before the setting calibrated at their own alpha
+        config = {**config, "calibration_alpha": calibration["alpha"]}
     methods = {}
     for name, row in result["success"].items():
         outcomes = outcome_string(row["records"])
