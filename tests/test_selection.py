@@ -58,6 +58,22 @@ def test_softmax_samples_in_proportion_and_tends_to_the_argmax():
     assert (cold == 1).all()
 
 
+def test_trust_chooses_the_best_score_among_the_candidates_nearest_their_mean():
+    generator = torch.Generator().manual_seed(0)
+    scores, actions = torch.rand(200, 1, 8, generator=generator), torch.randn(200, 8, 4, 3, generator=generator)
+    assert torch.equal(select(scores, SelectionConfig("trust", fraction=1.0), actions=actions), select(scores, SelectionConfig("argmax")))
+    distance = (actions - actions.mean(1, keepdim=True)).flatten(2).norm(dim=-1)
+    assert torch.equal(select(scores, SelectionConfig("trust", fraction=0.1), actions=actions), distance.argmin(-1))  # one kept: the medoid
+    half = select(scores, SelectionConfig("trust", fraction=0.5), actions=actions)
+    rank = distance.argsort(-1).argsort(-1)  # 0 for the nearest
+    assert (rank.gather(-1, half[:, None]) < 4).all()  # among the 4 nearest ...
+    best = scores[:, 0].masked_fill(rank >= 4, -1).argmax(-1)
+    assert torch.equal(half, best)  # ... the best score
+    # the outlier's high score is passed over for the best of the typical ones
+    outlier = torch.tensor([[[[0.0]], [[0.2]], [[5.0]], [[0.1]]]])
+    assert select(torch.tensor([[[0.1, 0.3, 0.9, 0.2]]]), SelectionConfig("trust", fraction=0.75), actions=outlier).item() == 1
+
+
 def test_bad_settings_are_refused():
     with pytest.raises(ValueError, match="selection rule must be one of"):
         SelectionConfig("best")
@@ -67,6 +83,10 @@ def test_bad_settings_are_refused():
         SelectionConfig("softmax", temperature=0.0)
     with pytest.raises(ValueError, match=r"\[batch, members, candidates\]"):
         select(torch.rand(2, 4), SelectionConfig())
+    with pytest.raises(ValueError, match=r"fraction in \(0, 1\]"):
+        SelectionConfig("trust", fraction=0.0)
+    with pytest.raises(ValueError, match="needs the candidates' actions"):
+        select(torch.rand(2, 1, 4), SelectionConfig("trust", fraction=0.5))
 
 
 def test_ensemble_members_are_independent_scorers():
@@ -128,6 +148,16 @@ def test_default_argmax_makes_the_choice_of_the_paper(trained_world_model):
     chunks, scores = reference.propose(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS])  # the state scorer's probabilities
     torch.testing.assert_close(scores, torch.sigmoid(reference.scorer(reference.imagine(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], chunks))))
     assert torch.equal(chosen, scores.argmax(-1))
+
+
+def test_actor_trust_rule_reads_the_executed_actions(trained_world_model):
+    _, wm_path, policy_path = trained_world_model
+    obs = TensorDict({keys.POINT_CLOUD: torch.rand(3, 2, 64, 3), keys.AGENT_POS: torch.rand(3, 2, 4)}, [3])
+    medoid = SelectionConfig("trust", fraction=1 / 8)
+    chosen = RerankingActor.from_checkpoints(policy_path, wm_path, num_candidates=8, seed=3, selection=medoid)(obs.clone())["dalir", "chosen_candidate"]
+    reference = RerankingActor.from_checkpoints(policy_path, wm_path, num_candidates=8, seed=3)
+    executed = reference.sample_candidates(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS])[..., reference.policy.config.executed, :]
+    assert torch.equal(chosen, (executed - executed.mean(1, keepdim=True)).flatten(2).norm(dim=-1).argmin(-1))
 
 
 def test_ensemble_rule_needs_an_ensemble(trained_world_model):

@@ -226,7 +226,7 @@ class RerankingActor(TensorDictModuleBase):
         cloud, agent_pos = cloud.reshape(-1, *cloud.shape[-3:]), agent_pos.reshape(-1, *agent_pos.shape[-2:])
         chunks = self.sample_candidates(cloud, agent_pos)
         members = self.member_scores(cloud, agent_pos, chunks)
-        best = select(members, self.selection, self.generator)
+        best = select(members, self.selection, self.generator, actions=chunks[..., self.policy.config.executed, :])
         chosen = chunks[torch.arange(len(best)), best]
         chunk_key, scores_key, chosen_key = self.out_keys
         tensordict.set(chunk_key, chosen.reshape(*batch, *chosen.shape[1:]))

@@ -10,6 +10,10 @@ over-optimises the proxy (Gao et al. 2022), so the rule is a setting of its own:
 - ``margin``: stay with the clean candidate (the base policy's own chunk) unless another one's
   pessimistic *advantage* over it, ``mean - k * std`` of ``score_j - score_0`` over the members,
   exceeds ``margin``. ``margin=inf`` is the base policy; ``k=0, margin=0`` the arg-max.
+- ``trust``: the arg-max among the ``fraction`` of candidates whose executed actions lie nearest
+  the candidates' mean (a trust region: the world model has seen chunks like the policy's typical
+  ones, and the highest scores tend to go to the outliers). ``fraction=1`` is the arg-max; a
+  fraction that leaves one candidate picks the medoid, the scores unused.
 
 Scores are completion probabilities ``[B, E, K]``: ``E`` ensemble members (1 for a single
 scorer, whose std is then 0) by ``K`` candidates, candidate 0 the clean one.
@@ -24,7 +28,7 @@ import torch
 
 from torchrl_dalir.config import check_choice
 
-RULES = ("argmax", "pessimistic", "softmax", "margin")
+RULES = ("argmax", "pessimistic", "softmax", "margin", "trust")
 SCORERS = ("state", "ensemble")
 
 
@@ -40,6 +44,7 @@ class SelectionConfig:
         k: pessimism, in ensemble standard deviations (``pessimistic``, ``margin``).
         temperature: the softmax temperature, in probability units (``softmax``).
         margin: the advantage over the clean candidate needed to leave it (``margin``).
+        fraction: the share of candidates, nearest the candidates' mean, that ``trust`` chooses among.
     """
 
     rule: str = "argmax"
@@ -47,18 +52,19 @@ class SelectionConfig:
     k: float = 0.0
     temperature: float = 0.01
     margin: float = 0.0
+    fraction: float = 1.0
 
     def __post_init__(self):
         check_choice("selection rule", self.rule, RULES)
         check_choice("selection scorer", self.scorer, SCORERS)
-        if self.k < 0 or self.temperature <= 0 or math.isnan(self.margin):
-            raise ValueError(f"need k >= 0, temperature > 0 and a margin that is a number; got {self}")
+        if self.k < 0 or self.temperature <= 0 or math.isnan(self.margin) or not 0 < self.fraction <= 1:
+            raise ValueError(f"need k >= 0, temperature > 0, a margin that is a number and a fraction in (0, 1]; got {self}")
 
     @property
     def name(self) -> str:
         """A short, unique description, e.g. ``margin(ensemble, k=1, margin=0.02)``."""
         settings = {"pessimistic": f", k={self.k:g}", "softmax": f", T={self.temperature:g}",
-                    "margin": f", k={self.k:g}, margin={self.margin:g}"}.get(self.rule, "")
+                    "margin": f", k={self.k:g}, margin={self.margin:g}", "trust": f", fraction={self.fraction:g}"}.get(self.rule, "")
         return f"{self.rule}({self.scorer}{settings})"
 
     @property
@@ -77,13 +83,29 @@ class SelectionConfig:
         return cls(**checkpoint.get("selection", {}))
 
 
-def select(scores: torch.Tensor, config: SelectionConfig, generator: torch.Generator | None = None) -> torch.Tensor:
-    """The index ``[B]`` of the candidate to execute, from member scores ``[B, E, K]``."""
+def select(scores: torch.Tensor, config: SelectionConfig, generator: torch.Generator | None = None,
+           actions: torch.Tensor | None = None) -> torch.Tensor:
+    """The index ``[B]`` of the candidate to execute, from member scores ``[B, E, K]`` (and, for
+    ``trust``, the candidates' executed actions ``[B, K, k, A]``).
+
+    Example:
+        >>> scores = torch.tensor([[[0.1, 0.9, 0.5]]])
+        >>> actions = torch.tensor([[[[0.0]], [[3.0]], [[0.5]]]])  # the mean is 7/6: candidate 1 lies furthest
+        >>> select(scores, SelectionConfig("argmax")).item(), select(scores, SelectionConfig("trust", fraction=0.67), actions=actions).item()
+        (1, 2)
+    """
     if scores.dim() != 3:
         raise ValueError(f"scores must be [batch, members, candidates], got {tuple(scores.shape)}")
     mean, std = scores.mean(1), scores.std(1, correction=0)
     if config.rule == "argmax":
         return mean.argmax(-1)
+    if config.rule == "trust":
+        if actions is None or actions.shape[:2] != scores.shape[::2]:
+            raise ValueError(f"the trust rule needs the candidates' actions [batch, candidates, ...] for scores of shape {tuple(scores.shape)}")
+        distance = (actions - actions.mean(1, keepdim=True)).flatten(2).norm(dim=-1)  # [B, K] from the candidates' mean
+        kept = max(1, round(config.fraction * scores.shape[-1]))
+        nearest = distance.topk(kept, dim=-1, largest=False).indices
+        return nearest.gather(-1, mean.gather(-1, nearest).argmax(-1, keepdim=True)).squeeze(-1)
     if config.rule == "pessimistic":
         return (mean - config.k * std).argmax(-1)
     if config.rule == "softmax":
