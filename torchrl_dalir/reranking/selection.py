@@ -100,7 +100,7 @@ def select(scores: torch.Tensor, config: SelectionConfig, generator: torch.Gener
     if config.rule == "argmax":
         return mean.argmax(-1)
     if config.rule == "trust":
-        if actions is None or actions.shape[:2] != scores.shape[::2]:
+        if actions is None or actions.shape[:2] != (scores.shape[0], scores.shape[-1]):  # [B, K]
             raise ValueError(f"the trust rule needs the candidates' actions [batch, candidates, ...] for scores of shape {tuple(scores.shape)}")
         distance = (actions - actions.mean(1, keepdim=True)).flatten(2).norm(dim=-1)  # [B, K] from the candidates' mean
         kept = max(1, round(config.fraction * scores.shape[-1]))
