@@ -4,6 +4,7 @@
     python examples/summarize_results.py out=outputs/pipeline trusted_json=docs/results/trusted_selection.json
     python examples/summarize_results.py out=outputs/pipeline save_records=docs/results/runs    # keep the runs' records
     python examples/summarize_results.py out=outputs/tables records=[docs/results/runs] variant=frozen+explore
+    python examples/summarize_results.py ... table1_json=docs/results/table1.json readme=README.md   # and the README's tables
 
 Reads every run of the main job under ``out`` (``<out>/results/<task>/<run>/results.json`` and its
 calibration) and the committed run records under ``records`` (:mod:`torchrl_dalir.pipeline.records`:
@@ -19,6 +20,11 @@ Where the runs also evaluated DALI-R with the paper's arg-max and the random-can
 (``<out>/trusted_selection.md``, ``.json`` and ``trusted_selection_<policy>.png``): base, the
 calibrated default rule, arg-max and random per task (``tasks`` restricts it), the default's gain
 and its sign test.
+
+``table1_json`` builds the paper's Table 1 (markdown, JSON and a bar plot per backbone, the plots
+also next to the JSON); ``readme`` rewrites the tables between the file's ``<!-- table 1 -->`` /
+``<!-- trusted-selection table -->`` markers and their ``<!-- end ... -->``, keeping each region's
+first paragraph (its caption, written by hand).
 """
 
 from __future__ import annotations
@@ -61,6 +67,19 @@ class Config:
     variant: str = DEFAULT_VARIANT  # the world-model variant of the trusted-selection table and Table 1 (paper: the paper's world model)
     tasks: list[str] = field(default_factory=list)  # the trusted-selection table's tasks (all if empty)
     table1_json: str | None = None  # also build the paper's Table 1 and write its data here (e.g. docs/results/table1.json)
+    readme: str | None = None  # rewrite the generated tables in this markdown file (e.g. README.md)
+
+
+def replace_region(text: str, marker: str, generated: str) -> str:
+    """``text`` with the part between ``<!-- marker -->`` and ``<!-- end marker -->`` replaced by its
+    first paragraph (the caption written by hand) and ``generated``."""
+    start, end = f"<!-- {marker} -->", f"<!-- end {marker} -->"
+    if text.count(start) != 1 or text.count(end) != 1 or text.index(start) > text.index(end):
+        raise ValueError(f"expected one {start} before one {end}")
+    i, j = text.index(start) + len(start), text.index(end)
+    region = text[i:j]
+    caption, body, tail = region.strip("\n").split("\n\n")[0], generated.strip("\n"), region[len(region.rstrip("\n")):]
+    return f"{text[:i]}\n{caption}\n\n{body}{tail}{text[j:]}"
 
 
 def gather(records: list[dict]) -> list[dict]:
@@ -260,9 +279,10 @@ def main(argv: list[str]) -> None:
         rows = [row for row in table if row["policy"] == policy and row["variant"] == cfg.variant]
         if rows:
             plot_success_by_task(rows, root / f"summary_{policy}.png", title=f"DALI-R on a frozen {policy.upper()} policy")
+    generated = {}  # README marker -> the markdown built here
     trusted = trusted_selection(table, cfg.variant, cfg.tasks)
     if trusted:
-        text = trusted_table(trusted)
+        text = generated["trusted-selection table"] = trusted_table(trusted)
         print(text)
         atomic_write(root / "trusted_selection.md", text)
         for path in [root / "trusted_selection.json", *([Path(cfg.trusted_json)] if cfg.trusted_json else [])]:
@@ -275,7 +295,7 @@ def main(argv: list[str]) -> None:
         data = table1(table, cfg.variant)
         if not data:
             raise FileNotFoundError(f"no runs of variant {cfg.variant!r} on the paper's tasks {TABLE1_TASKS}")
-        text = table1_markdown(data)
+        text = generated["table 1"] = table1_markdown(data)
         print(text)
         atomic_write(root / "table1.md", text)
         for path in (root / "table1.json", Path(cfg.table1_json)):
@@ -288,7 +308,14 @@ def main(argv: list[str]) -> None:
                     row[key] = [v / 100 for v in t[key]]
                     row[f"{key}_paper"] = None if t[f"paper_{key}"] is None else t[f"paper_{key}"] / 100
                 rows.append(row)
-            plot_success_by_task(rows, root / f"table1_{backbone}.png", title=f"Table 1 ({backbone.upper()}): base policy and DALI-R (black lines: the paper)")
+            for folder in {root, Path(cfg.table1_json).parent}:
+                plot_success_by_task(rows, folder / f"table1_{backbone}.png", title=f"Table 1 ({backbone.upper()}): base policy and DALI-R (black lines: the paper)")
+    if cfg.readme:
+        readme = Path(cfg.readme)
+        text = readme.read_text()
+        for marker, markdown in generated.items():
+            text = replace_region(text, marker, markdown)
+        atomic_write(readme, text)
 
 
 if __name__ == "__main__":

@@ -101,7 +101,10 @@ def test_summarize_results_groups_seeds_by_world_model_variant(tmp_path, monkeyp
     run("fm_seed0_frozen+explore_fm_seed0", 0, no, [True, False, False, False])
     run("fm_seed1_frozen+explore_fm_seed1", 1, no, yes)
     script = Path(__file__).resolve().parents[1] / "examples" / "summarize_results.py"
-    monkeypatch.setattr(sys, "argv", ["x", f"out={tmp_path}", "variant=frozen+explore", f"table1_json={tmp_path / 'table1.json'}"])
+    readme = tmp_path / "README.md"
+    readme.write_text("# Title\n<!-- table 1 -->\n**Caption.**\n\n| stale |\n<!-- end table 1 -->\n\n<!-- trusted-selection table -->\n"
+                      "**Rules.**\n\n| stale |\n\n<!-- end trusted-selection table -->\nEnd.\n")
+    monkeypatch.setattr(sys, "argv", ["x", f"out={tmp_path}", "variant=frozen+explore", f"table1_json={tmp_path / 'tables' / 'table1.json'}", f"readme={readme}"])
     runpy.run_path(str(script), run_name="__main__")
     rows = {(r["variant"], tuple(r["seeds"])): r for r in json.loads((tmp_path / "summary.json").read_text())}
     assert sorted(rows) == [("frozen+explore", (0, 1)), ("paper", (0,))]
@@ -109,11 +112,19 @@ def test_summarize_results_groups_seeds_by_world_model_variant(tmp_path, monkeyp
     trusted = json.loads((tmp_path / "trusted_selection.json").read_text())
     assert trusted["variant"] == "frozen+explore" and trusted["tasks"]["stick-pull"]["seeds"] == 2
     assert trusted["tasks"]["stick-pull"]["default"] == 62.5 and trusted["mean_gain"] == 62.5
-    table1 = json.loads((tmp_path / "table1.json").read_text())  # the paper's Table 1, for the same variant
+    table1 = json.loads((tmp_path / "tables" / "table1.json").read_text())  # the paper's Table 1, for the same variant
+    assert table1 == json.loads((tmp_path / "table1.json").read_text())
     assert table1 == {"fm": {"stick-pull": {"base": [0.0, 0.0], "dalir": [25.0, 100.0], "seeds": [0, 1], "episodes": 4, "p": 0.0625,
                                             "rules": ["margin(ensemble, k=1, margin=1)"], "paper_base": 48.7, "paper_dalir": 50.7}}}
     assert "| fm | stick-pull | 2 x 4 | 0.0 +- 0.0 | 62.5 +- 37.5 | +62.5 | 0.062 |" in (tmp_path / "table1.md").read_text()
-    assert (tmp_path / "table1_fm.png").stat().st_size > 0
+    assert (tmp_path / "table1_fm.png").read_bytes() == (tmp_path / "tables" / "table1_fm.png").read_bytes()  # the plot beside the JSON too
+    # the README's generated tables replaced, their captions and the text around them kept
+    trusted_md, table1_md = (tmp_path / "trusted_selection.md").read_text(), (tmp_path / "table1.md").read_text()
+    assert readme.read_text() == (f"# Title\n<!-- table 1 -->\n**Caption.**\n\n{table1_md.strip()}\n<!-- end table 1 -->\n\n"
+                                  f"<!-- trusted-selection table -->\n**Rules.**\n\n{trusted_md.strip()}\n\n<!-- end trusted-selection table -->\nEnd.\n")
+    replace_region = runpy.run_path(str(script))["replace_region"]
+    with pytest.raises(ValueError, match="expected one <!-- table 1 -->"):
+        replace_region("<!-- end table 1 --> <!-- table 1 -->", "table 1", "| new |")
 
 
 def test_summarize_results_adds_committed_records_to_the_runs_and_pools_their_discordant_episodes(tmp_path, monkeypatch):
