@@ -21,6 +21,9 @@ Where the runs also evaluated DALI-R with the paper's arg-max and the random-can
 calibrated default rule, arg-max and random per task (``tasks`` restricts it), the default's gain
 and its sign test.
 
+Runs that logged their stages (``<out>/stages.jsonl``, kept in their records) also give
+``<out>/run_costs.md``: each run's wall time per stage and its peak memory.
+
 ``table1_json`` builds the paper's Table 1 (markdown, JSON and a bar plot per backbone, the plots
 also next to the JSON); ``readme`` rewrites the tables between the file's ``<!-- table 1 -->`` /
 ``<!-- trusted-selection table -->`` markers and their ``<!-- end ... -->``, keeping each region's
@@ -40,7 +43,7 @@ from torchrl_dalir.config import parse_config
 from torchrl_dalir.evaluation.compare import METHODS, sign_test
 from torchrl_dalir.evaluation.paper import TABLE1, TABLE1_TASKS
 from torchrl_dalir.evaluation.plots import plot_success_by_task
-from torchrl_dalir.pipeline import PRESETS, PipelineConfig
+from torchrl_dalir.pipeline import PRESETS, STAGES, PipelineConfig
 from torchrl_dalir.pipeline.records import (
     PAPER,
     config_variant,
@@ -68,6 +71,22 @@ class Config:
     tasks: list[str] = field(default_factory=list)  # the trusted-selection table's tasks (all if empty)
     table1_json: str | None = None  # also build the paper's Table 1 and write its data here (e.g. docs/results/table1.json)
     readme: str | None = None  # rewrite the generated tables in this markdown file (e.g. README.md)
+
+
+def cost_table(records: list[dict]) -> str:
+    """Each run's wall time per stage (minutes; the attempt that finished the stage) and peak
+    memory, for the records that kept them; empty if none did."""
+    timed = sorted((r for r in records if r.get("stage_seconds")), key=lambda r: (r["policy"], r["task"], r["variant"], r["seed"]))
+    if not timed:
+        return ""
+    lines = [f"| backbone | task | variant | seed | {' | '.join(STAGES)} | total (min) | peak memory (GiB) |",
+             "| --- | --- | --- | --- |" + " --- |" * (len(STAGES) + 2)]
+    for r in timed:
+        minutes = [r["stage_seconds"].get(s) for s in STAGES]
+        cells = " | ".join("" if m is None else f"{m / 60:.1f}" for m in minutes)
+        lines.append(f"| {r['policy']} | {r['task']} | {r['variant']} | {r['seed']} | {cells} | "
+                     f"{sum(m for m in minutes if m is not None) / 60:.1f} | {r.get('peak_memory_gib') or ''} |")
+    return "\n".join(lines) + "\n"
 
 
 def replace_region(text: str, marker: str, generated: str) -> str:
@@ -268,13 +287,18 @@ def main(argv: list[str]) -> None:
     if cfg.save_records:
         for path in save_records(runs, cfg.save_records):
             print(f"record: {path}")
-    table = gather(merge_records(runs, load_records(cfg.records)))
+    records = merge_records(runs, load_records(cfg.records))
+    table = gather(records)
     if not table:
         raise FileNotFoundError(f"no results under {root / 'results'} nor records under {cfg.records}; run examples/train_dp3_wm.py first")
     text = summary_table(table)
     print(text)
     atomic_write(root / "summary.md", text)
     atomic_write(root / "summary.json", json.dumps(table, indent=1))
+    costs = cost_table(records)
+    if costs:
+        print(costs)
+        atomic_write(root / "run_costs.md", costs)
     for policy in sorted({row["policy"] for row in table}):
         rows = [row for row in table if row["policy"] == policy and row["variant"] == cfg.variant]
         if rows:

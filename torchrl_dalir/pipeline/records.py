@@ -3,7 +3,8 @@
 A run's folder (datasets, checkpoints, ``results.json`` with every episode's details) is large
 and lives outside the repository; a run record keeps what the result tables need: the command
 that made the run, every method's success on each test episode (``"0110..."``), the selection
-rule it used and its calibration on validation episodes. Records written by different sessions
+rule it used, its calibration on validation episodes and, for runs that logged them, each stage's
+wall time and the job's peak memory. Records written by different sessions
 on different machines add up: ``examples/summarize_results.py records=[docs/results/runs]``
 builds the tables from them, so seeds can be added one run at a time.
 
@@ -20,7 +21,7 @@ from pathlib import Path
 
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.evaluation.compare import METHODS, paired_sign_test
-from torchrl_dalir.pipeline.config import PRESETS, PipelineConfig
+from torchrl_dalir.pipeline.config import PRESETS, STAGE_LOG, PipelineConfig
 from torchrl_dalir.utils import atomic_write
 
 RECORD_VERSION = 1
@@ -77,10 +78,12 @@ def command(config: dict) -> str:
     return " ".join(["python examples/train_dp3_wm.py", *(f"{k}={v}" for k, v in head.items()), *changed])
 
 
-def run_record(result: dict, run: str, calibration: dict | None = None, commit: str | None = None) -> dict:
+def run_record(result: dict, run: str, calibration: dict | None = None, commit: str | None = None, stages: dict | None = None) -> dict:
     """The record of one main-job run from its ``results.json`` (``result``), its folder name
     ``run`` and its ``calibration.json`` (if it was calibrated). ``commit`` names the code that
-    made the run when ``result`` does not (results written before they named it)."""
+    made the run when ``result`` does not (results written before they named it). ``stages``:
+    the run's lines of the stage log by stage (:func:`stage_log`), kept as each stage's wall time
+    and the job's peak memory."""
     config = result["config"]
     if calibration and calibration.get("alpha") is not None:  # runs from before the setting calibrated at their own alpha
         config = {**config, "calibration_alpha": calibration["alpha"]}
@@ -116,7 +119,26 @@ def run_record(result: dict, run: str, calibration: dict | None = None, commit: 
             "base": round(confirmation["base_success_rate"], 4), "success_rate": round(confirmation["success_rate"], 4),
             "base_only": confirmation["vs_base"]["base_only"], "method_only": confirmation["vs_base"]["dalir_only"],
             "confirmed": confirmation["confirmed"]}
+    if stages:
+        record["stage_seconds"] = {name: line["seconds"] for name, line in stages.items()}
+        memory = [line["peak_memory_gib"] for line in stages.values() if line.get("peak_memory_gib") is not None]
+        record["peak_memory_gib"] = max(memory) if memory else None
     return record
+
+
+def stage_log(root: str | Path) -> dict[str, dict[str, dict]]:
+    """``<root>/stages.jsonl`` (written by the main job as each stage finishes) as ``{"<task>/<run>":
+    {stage: its last line}}``: a stage redone later counts once, with its last time. A line cut
+    short by a crash is skipped."""
+    path, runs = Path(root) / STAGE_LOG, {}
+    if path.exists():
+        for text in path.read_text().splitlines():
+            try:
+                line = json.loads(text)
+            except json.JSONDecodeError:
+                continue
+            runs.setdefault(line["run"], {})[line["stage"]] = line
+    return runs
 
 
 def discordant(record: dict, method: str, against: str = "base") -> tuple[int, int] | None:
@@ -157,14 +179,15 @@ def records_from_runs(root: str | Path, commit: str | None = None) -> list[dict]
     and its calibration); runs of some methods only (Table 3's arg-max-only variants) are left out.
     ``commit``: see :func:`run_record`."""
     root = Path(root)
-    records = []
+    records, stages = [], stage_log(root)
     for path in sorted(root.glob("results/*/*/results.json")):
         result = json.loads(path.read_text())
         if not {METHODS["base"], METHODS["dalir"]} <= set(result["success"]):
             continue
         task, run = path.parent.parent.name, path.parent.name
         calibration = root / "calibration" / task / run / "calibration.json"
-        records.append(run_record(result, run, json.loads(calibration.read_text()) if calibration.exists() else None, commit))
+        records.append(run_record(result, run, json.loads(calibration.read_text()) if calibration.exists() else None, commit,
+                                  stages.get(f"{task}/{run}")))
     return records
 
 

@@ -4,7 +4,9 @@ world model -> calibration -> evaluation, one task and seed.
 Every stage writes an artifact under ``cfg.out`` and is skipped once that artifact is complete (a
 dataset marked complete in its ``meta.json``, a training at its last step); an interrupted stage
 resumes. ``redo=[world_model]`` runs that stage and the later ones again from scratch, keeping
-the previous runs aside. ``examples/train_dp3_wm.py`` is this function behind a command line.
+the previous runs aside. Each finished stage adds a line to ``<out>/stages.jsonl`` (its run, wall
+time and the job's peak memory), which the run's record keeps. ``examples/train_dp3_wm.py`` is
+this function behind a command line.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from torchrl_dalir.data import Source, collect
 from torchrl_dalir.data.storage import is_complete
 from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, calibrate_on_failures
 from torchrl_dalir.evaluation.compare import DALIR
-from torchrl_dalir.pipeline.config import STAGES, PipelineConfig
+from torchrl_dalir.pipeline.config import STAGE_LOG, STAGES, PipelineConfig
 from torchrl_dalir.pipeline.report import evaluate_and_report
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training import train_policy, train_world_model
@@ -44,19 +46,39 @@ def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exi
         return
     start = time.perf_counter()
     run()
-    print(f"[{name}] {time.perf_counter() - start:.0f} s -> {artifact} ({peak_memory()})", flush=True)
+    seconds, memory = time.perf_counter() - start, peak_memory()
+    print(f"[{name}] {seconds:.0f} s -> {artifact} ({describe_memory(memory)})", flush=True)
+    log_stage(cfg, name, seconds, memory)
 
 
-def peak_memory() -> str:
-    """The job's high-water marks of resident memory so far: this process and its largest finished
-    child (collector workers); printed after each stage, so the stage that raised one shows."""
+def log_stage(cfg: PipelineConfig, name: str, seconds: float, memory: tuple[float, float] | None) -> None:
+    """Appends the finished stage's wall time and the job's peak memory so far to ``<out>/stages.jsonl``
+    (a line per stage, keyed by the run's ``<task>/<run name>``; a redone stage adds another line,
+    and the last one counts)."""
+    own, workers = (None, None) if memory is None else (round(m, 2) for m in memory)
+    line = {"run": f"{cfg.task}/{cfg.run_name()}", "stage": name, "seconds": round(seconds, 1), "peak_memory_gib": own,
+            "workers_peak_memory_gib": workers, "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    path = Path(cfg.out) / STAGE_LOG
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cut = path.exists() and not path.read_bytes().endswith(b"\n") and path.stat().st_size > 0  # a line a crash cut short
+    with open(path, "a") as log:
+        log.write(("\n" if cut else "") + json.dumps(line) + "\n")
+
+
+def peak_memory() -> tuple[float, float] | None:
+    """The job's high-water marks of resident memory so far in GiB: this process and its largest
+    finished child (collector workers); ``None`` where it cannot be read (not on POSIX)."""
     try:
         import resource
-    except ImportError:  # not on POSIX
-        return "peak memory unknown"
+    except ImportError:
+        return None
     unit = 2**30 if sys.platform == "darwin" else 2**20  # ru_maxrss is in bytes on macOS, KiB on Linux
-    own, workers = (resource.getrusage(who).ru_maxrss / unit for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
-    return f"peak memory {own:.1f} GiB, workers {workers:.1f} GiB"
+    return tuple(resource.getrusage(who).ru_maxrss / unit for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+
+
+def describe_memory(memory: tuple[float, float] | None) -> str:
+    """Printed after each stage, so the stage that raised a high-water mark shows."""
+    return "peak memory unknown" if memory is None else f"peak memory {memory[0]:.1f} GiB, workers {memory[1]:.1f} GiB"
 
 
 def run_pipeline(cfg: PipelineConfig) -> Path:
