@@ -21,7 +21,7 @@ Where the runs also evaluated DALI-R with the paper's arg-max and the random-can
 calibrated default rule, arg-max and random per task (``tasks`` restricts it), the default's gain
 and its sign test.
 
-Runs that logged their stages (``<out>/stages.jsonl``, kept in their records) also give
+Runs that logged their stages (``<out>/stages/``, kept in their records) also give
 ``<out>/run_costs.md``: each run's wall time per stage and its peak memory.
 
 ``table1_json`` builds the paper's Table 1 (markdown, JSON and a bar plot per backbone, the plots
@@ -75,17 +75,20 @@ class Config:
 
 def cost_table(records: list[dict]) -> str:
     """Each run's wall time per stage (minutes; the attempt that finished the stage) and peak
-    memory, for the records that kept them; empty if none did."""
+    memory (main process / largest collector worker), for the records that kept them; empty if
+    none did."""
     timed = sorted((r for r in records if r.get("stage_seconds")), key=lambda r: (r["policy"], r["task"], r["variant"], r["seed"]))
     if not timed:
         return ""
-    lines = [f"| backbone | task | variant | seed | {' | '.join(STAGES)} | total (min) | peak memory (GiB) |",
+    lines = [f"| backbone | task | variant | seed | {' | '.join(STAGES)} | total (min) | peak memory, main / workers (GiB) |",
              "| --- | --- | --- | --- |" + " --- |" * (len(STAGES) + 2)]
     for r in timed:
         minutes = [r["stage_seconds"].get(s) for s in STAGES]
         cells = " | ".join("" if m is None else f"{m / 60:.1f}" for m in minutes)
         lines.append(f"| {r['policy']} | {r['task']} | {r['variant']} | {r['seed']} | {cells} | "
-                     f"{sum(m for m in minutes if m is not None) / 60:.1f} | {r.get('peak_memory_gib') or ''} |")
+                     f"{sum(m for m in minutes if m is not None) / 60:.1f} | {r.get('peak_memory_gib')} / {r.get('workers_peak_memory_gib')} |")
+    lines.append("\nA blank stage was not run by that job (it ran earlier, or another job sharing the folder ran it: the demos of a "
+                 "task serve every seed), so totals compare only between runs that ran the same stages.")
     return "\n".join(lines) + "\n"
 
 
@@ -97,7 +100,10 @@ def replace_region(text: str, marker: str, generated: str) -> str:
         raise ValueError(f"expected one {start} before one {end}")
     i, j = text.index(start) + len(start), text.index(end)
     region = text[i:j]
-    caption, body, tail = region.strip("\n").split("\n\n")[0], generated.strip("\n"), region[len(region.rstrip("\n")):]
+    caption = region.strip("\n").split("\n\n")[0]
+    if "\n\n" not in region.strip("\n") or caption.lstrip().startswith("|"):
+        raise ValueError(f"the text after {start} must start with a caption paragraph, then a blank line, then the table")
+    body, tail = generated.strip("\n"), region[len(region.rstrip("\n")):]
     return f"{text[:i]}\n{caption}\n\n{body}{tail}{text[j:]}"
 
 
@@ -336,9 +342,13 @@ def main(argv: list[str]) -> None:
                 plot_success_by_task(rows, folder / f"table1_{backbone}.png", title=f"Table 1 ({backbone.upper()}): base policy and DALI-R (black lines: the paper)")
     if cfg.readme:
         readme = Path(cfg.readme)
-        text = readme.read_text()
-        for marker, markdown in generated.items():
-            text = replace_region(text, marker, markdown)
+        text = readme.read_text(encoding="utf-8")
+        for marker in ("table 1", "trusted-selection table"):
+            if marker in generated:
+                text = replace_region(text, marker, generated[marker])
+                print(f"{readme}: the {marker} rewritten")
+            elif f"<!-- {marker} -->" in text:
+                print(f"{readme}: the {marker} left as it was (not built by this command)")
         atomic_write(readme, text)
 
 

@@ -123,8 +123,13 @@ def test_summarize_results_groups_seeds_by_world_model_variant(tmp_path, monkeyp
     assert readme.read_text() == (f"# Title\n<!-- table 1 -->\n**Caption.**\n\n{table1_md.strip()}\n<!-- end table 1 -->\n\n"
                                   f"<!-- trusted-selection table -->\n**Rules.**\n\n{trusted_md.strip()}\n\n<!-- end trusted-selection table -->\nEnd.\n")
     replace_region = runpy.run_path(str(script))["replace_region"]
-    with pytest.raises(ValueError, match="expected one <!-- table 1 -->"):
-        replace_region("<!-- end table 1 --> <!-- table 1 -->", "table 1", "| new |")
+    for wrong in ("<!-- end table 1 --> <!-- table 1 -->", "no markers", "<!-- table 1 --><!-- table 1 --><!-- end table 1 -->"):
+        with pytest.raises(ValueError, match="expected one <!-- table 1 -->"):
+            replace_region(wrong, "table 1", "| new |")
+    for no_caption in ("<!-- table 1 -->\n| old |\n<!-- end table 1 -->", "<!-- table 1 -->\n| old |\n\nafter\n<!-- end table 1 -->",
+                       "<!-- table 1 --><!-- end table 1 -->"):  # a stale table would survive as the caption
+        with pytest.raises(ValueError, match="must start with a caption paragraph"):
+            replace_region(no_caption, "table 1", "| new |")
 
 
 def test_summarize_results_adds_committed_records_to_the_runs_and_pools_their_discordant_episodes(tmp_path, monkeypatch):
@@ -151,6 +156,14 @@ def test_summarize_results_adds_committed_records_to_the_runs_and_pools_their_di
     assert load_records([folder]) == [full, counts]
     with pytest.raises(ValueError, match="another run"):  # two different runs of one seed
         save_records([{**full, "methods": counts["methods"]}], folder)
+    # the same run summarised again from a folder without its stage log keeps the timings it was saved with
+    from torchrl_dalir.pipeline.records import merge_records
+
+    timed = {**full, "seed": 5, "stage_seconds": {"policy": 60.0}, "peak_memory_gib": 1.5, "workers_peak_memory_gib": 0.5}
+    [path] = save_records([timed], tmp_path / "timed")
+    save_records([{**full, "seed": 5}], tmp_path / "timed")
+    assert json.loads(path.read_text()) == timed
+    assert merge_records([{**full, "seed": 5}], [timed]) == [timed] and merge_records([timed], [{**full, "seed": 5}]) == [timed]
     script = Path(__file__).resolve().parents[1] / "examples" / "summarize_results.py"
     monkeypatch.setattr(sys, "argv", ["x", f"out={tmp_path / 'tables'}", f"records=[{folder}]", "variant=frozen+explore"])
     runpy.run_path(str(script), run_name="__main__")

@@ -75,12 +75,14 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     assert record["methods"]["dalir"]["outcomes"] == "".join("1" if r["success"] else "0" for r in data["success"]["DALI-R"]["records"])
     assert record["validation"]["chosen"] == calibration["chosen"] and record["commit"] == data["commit"]
     # every finished stage's wall time and peak memory, logged under out and kept in the record
-    stages = [json.loads(line) for line in (tmp_path / "stages.jsonl").read_text().splitlines()]
+    stage_file = tmp_path / "stages" / "reach" / f"{policy}_seed0.jsonl"
+    stages = [json.loads(line) for line in stage_file.read_text().splitlines()]
     assert [s["stage"] for s in stages] == [stage for stage, _ in ends] and {s["run"] for s in stages} == {f"reach/{policy}_seed0"}
     assert all(abs(s["peak_memory_gib"] - float(peak)) < 0.06 for s, (_, peak) in zip(stages, ends))  # the log's numbers
     assert record["stage_seconds"] == {s["stage"]: s["seconds"] for s in stages} and record["peak_memory_gib"] == stages[-1]["peak_memory_gib"]
+    assert record["workers_peak_memory_gib"] == max(s["workers_peak_memory_gib"] for s in stages)
     costs = (tmp_path / "run_costs.md").read_text().splitlines()
-    assert len(costs) == 3 and costs[2].startswith(f"| {policy} | reach | paper | 0 | ")
+    assert len(costs) == 5 and costs[2].startswith(f"| {policy} | reach | paper | 0 | ") and costs[4].startswith("A blank stage")
     assert costs[2].split(" | ")[4 + PIPELINE_STAGES.index("exploration")] == ""  # the smoke job collects no exploration data
     # the record's command, run in another folder, is this run's configuration
     from torchrl_dalir.config import config_dict, parse_config
@@ -118,9 +120,9 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     assert torch.load(checkpoint, weights_only=False)["step"] == state["num_steps"]
     from torchrl_dalir.pipeline.records import stage_log
 
-    with open(tmp_path / "stages.jsonl", "a") as log:  # a line cut short by a crash is skipped
+    with open(stage_file, "a") as log:  # a line cut short by a crash is skipped
         log.write('{"run": "reach/')
-    lines = [json.loads(line) for line in (tmp_path / "stages.jsonl").read_text().splitlines()[:-1]]
+    lines = [json.loads(line) for line in stage_file.read_text().splitlines()[:-1]]
     assert [s["stage"] for s in lines].count("policy") == 2  # the resumed stage's second line counts
     assert stage_log(tmp_path)[f"reach/{policy}_seed0"]["policy"] == [s for s in lines if s["stage"] == "policy"][-1]
     # redoing a stage starts it and every later stage from scratch, keeping the previous runs aside
@@ -128,8 +130,10 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     out = capsys.readouterr().out
     assert "[world_model] redo" in out and "[calibration] redo" in out and "[evaluation] redo" in out and out.count("done before") == 3
     assert len(list((tmp_path / "world_models" / policy / "reach").glob("seed0.replaced-*"))) == 1
-    assert [s["stage"] for s in stage_log(tmp_path)[f"reach/{policy}_seed0"].values()] == [stage for stage, _ in ends]
-    assert len([line for line in (tmp_path / "stages.jsonl").read_text().splitlines() if '"world_model"' in line]) == 2  # after the cut line
+    # the redo's lines follow the cut one on lines of their own, and its stages' last lines count
+    after_cut = stage_file.read_text().splitlines()[len(lines) + 1:]
+    assert [json.loads(line)["stage"] for line in after_cut] == ["world_model", "calibration", "evaluation"]
+    assert stage_log(tmp_path)[f"reach/{policy}_seed0"]["world_model"] == json.loads(after_cut[0])
 
 
 def test_sweep_refuses_unknown_tasks_before_running_anything(tmp_path, monkeypatch):

@@ -28,7 +28,7 @@ from torchrl_dalir.training.world_model import WorldModelTrainingConfig
 DERIVED_FROM = {"data": "out", "mixed_name": "policy and seed", "policy_checkpoint": "out, policy and seed"}
 
 STAGES = ("demos", "policy", "mixed", "exploration", "world_model", "calibration", "evaluation")
-STAGE_LOG = "stages.jsonl"  # under out: a line per finished stage (its run, wall time, peak memory)
+STAGE_LOG = "stages"  # under out: <task>/<run name>.jsonl, a line per finished stage (wall time, peak memory)
 
 
 @dataclass

@@ -4,7 +4,7 @@ A run's folder (datasets, checkpoints, ``results.json`` with every episode's det
 and lives outside the repository; a run record keeps what the result tables need: the command
 that made the run, every method's success on each test episode (``"0110..."``), the selection
 rule it used, its calibration on validation episodes and, for runs that logged them, each stage's
-wall time and the job's peak memory. Records written by different sessions
+wall time (the attempt that finished it) and the job's peak memory. Records written by different sessions
 on different machines add up: ``examples/summarize_results.py records=[docs/results/runs]``
 builds the tables from them, so seeds can be added one run at a time.
 
@@ -31,6 +31,7 @@ SHORT = {name: short for short, name in METHODS.items()}  # "base policy" -> "ba
 # own settings that do not change a run's results: not part of the command
 _DERIVED = {"out", "data", "mixed_name", "policy_checkpoint", "task", "seed", "policy", "device"}
 _NOT_RESULTS = {"out", "preset", "task", "seed", "policy", "redo", "until"}
+TIMING_KEYS = ("stage_seconds", "peak_memory_gib", "workers_peak_memory_gib")  # from the run's stage log
 # settings whose default changed after they were added: the value a run that predates them ran at
 _ADDED_AS = {"calibration_grid": "all"}
 
@@ -121,23 +122,33 @@ def run_record(result: dict, run: str, calibration: dict | None = None, commit: 
             "confirmed": confirmation["confirmed"]}
     if stages:
         record["stage_seconds"] = {name: line["seconds"] for name, line in stages.items()}
-        memory = [line["peak_memory_gib"] for line in stages.values() if line.get("peak_memory_gib") is not None]
-        record["peak_memory_gib"] = max(memory) if memory else None
+        for key in TIMING_KEYS[1:]:  # the job's high-water marks: this process, its largest collector worker
+            memory = [line[key] for line in stages.values() if line.get(key) is not None]
+            record[key] = max(memory) if memory else None
     return record
 
 
+def _with_timings(record: dict, other: dict) -> dict:
+    """``record``, given ``other``'s stage timings where it has none (the same run summarised from a
+    folder that no longer holds its stage log)."""
+    if "stage_seconds" in record or "stage_seconds" not in other:
+        return record
+    return {**record, **{key: other[key] for key in TIMING_KEYS if key in other}}
+
+
 def stage_log(root: str | Path) -> dict[str, dict[str, dict]]:
-    """``<root>/stages.jsonl`` (written by the main job as each stage finishes) as ``{"<task>/<run>":
-    {stage: its last line}}``: a stage redone later counts once, with its last time. A line cut
-    short by a crash is skipped."""
-    path, runs = Path(root) / STAGE_LOG, {}
-    if path.exists():
+    """The main job's stage logs under ``root`` (``stages/<task>/<run>.jsonl``, a line as each stage
+    finishes) as ``{"<task>/<run>": {stage: its last line}}``: a stage redone later counts once, with
+    its last time. A line cut short by a crash is skipped."""
+    runs = {}
+    for path in sorted(Path(root).glob(f"{STAGE_LOG}/*/*.jsonl")):
+        lines = runs.setdefault(f"{path.parent.name}/{path.name.removesuffix('.jsonl')}", {})
         for text in path.read_text().splitlines():
             try:
                 line = json.loads(text)
             except json.JSONDecodeError:
                 continue
-            runs.setdefault(line["run"], {})[line["stage"]] = line
+            lines[line["stage"]] = line
     return runs
 
 
@@ -217,6 +228,8 @@ def save_records(records: list[dict], folder: str | Path) -> list[Path]:
             raise ValueError(f"{path} holds another run of {record['task']} {record['policy']} seed {record['seed']}: "
                              "move it away to replace it")
     for path, record in zip(paths, records):
+        if path.exists():  # the same run: keep the timings it was saved with
+            record = _with_timings(record, json.loads(path.read_text()))
         atomic_write(path, json.dumps(record, indent=1) + "\n")
     return paths
 
@@ -229,7 +242,9 @@ def merge_records(*sources: list[dict]) -> list[dict]:
         for record in records:
             key = (record["task"], record["policy"], record["variant"], record["seed"])
             kept = merged.setdefault(key, record)
-            if kept["methods"] != record["methods"]:
+            if kept["methods"] == record["methods"]:
+                merged[key] = _with_timings(kept, record)
+            else:
                 warnings.warn(f"two different runs of {' '.join(map(str, key))}: the one of {kept['run']} (commit {kept['commit']}) is used",
                               stacklevel=2)
     return list(merged.values())

@@ -4,8 +4,8 @@ world model -> calibration -> evaluation, one task and seed.
 Every stage writes an artifact under ``cfg.out`` and is skipped once that artifact is complete (a
 dataset marked complete in its ``meta.json``, a training at its last step); an interrupted stage
 resumes. ``redo=[world_model]`` runs that stage and the later ones again from scratch, keeping
-the previous runs aside. Each finished stage adds a line to ``<out>/stages.jsonl`` (its run, wall
-time and the job's peak memory), which the run's record keeps. ``examples/train_dp3_wm.py`` is
+the previous runs aside. Each finished stage adds a line to ``<out>/stages/<task>/<run name>.jsonl``
+(the wall time of the attempt that finished it, the job's peak memory), which the run's record keeps. ``examples/train_dp3_wm.py`` is
 this function behind a command line.
 """
 
@@ -52,17 +52,21 @@ def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exi
 
 
 def log_stage(cfg: PipelineConfig, name: str, seconds: float, memory: tuple[float, float] | None) -> None:
-    """Appends the finished stage's wall time and the job's peak memory so far to ``<out>/stages.jsonl``
-    (a line per stage, keyed by the run's ``<task>/<run name>``; a redone stage adds another line,
-    and the last one counts)."""
+    """Appends the finished stage's wall time (of the attempt that finished it: an interrupted attempt
+    logs nothing) and the job's peak memory so far to ``<out>/stages/<task>/<run name>.jsonl``, a
+    file per run so that jobs sharing ``out`` never write to one file. A redone stage adds another
+    line; the last one counts."""
     own, workers = (None, None) if memory is None else (round(m, 2) for m in memory)
     line = {"run": f"{cfg.task}/{cfg.run_name()}", "stage": name, "seconds": round(seconds, 1), "peak_memory_gib": own,
             "workers_peak_memory_gib": workers, "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-    path = Path(cfg.out) / STAGE_LOG
+    path = Path(cfg.out) / STAGE_LOG / cfg.task / f"{cfg.run_name()}.jsonl"
     path.parent.mkdir(parents=True, exist_ok=True)
-    cut = path.exists() and not path.read_bytes().endswith(b"\n") and path.stat().st_size > 0  # a line a crash cut short
-    with open(path, "a") as log:
-        log.write(("\n" if cut else "") + json.dumps(line) + "\n")
+    with open(path, "a+b") as log:  # (appends go to the end whatever the position read)
+        cut = False
+        if log.seek(0, 2) > 0:
+            log.seek(-1, 2)
+            cut = log.read(1) != b"\n"  # a line a crash cut short
+        log.write((("\n" if cut else "") + json.dumps(line) + "\n").encode())
 
 
 def peak_memory() -> tuple[float, float] | None:
