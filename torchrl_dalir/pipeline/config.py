@@ -167,6 +167,9 @@ class PipelineConfig:
     def results_dir(self) -> Path:
         return Path(self.out) / "results" / self.task / self.run_name()
 
+    def stage_log_path(self) -> Path:
+        return Path(self.out) / STAGE_LOG / self.task / f"{self.run_name()}.jsonl"
+
 
 def _nest(preset: str) -> dict:
     return {

@@ -222,14 +222,15 @@ def save_records(records: list[dict], folder: str | Path) -> list[Path]:
     already there is only replaced by one of the same run (the same outcomes of every method):
     two runs of one seed are refused, before anything is written."""
     paths = [record_path(folder, record) for record in records]
+    saved = {path: json.loads(path.read_text()) for path in paths if path.exists()}
     for path, record in zip(paths, records):
         check_record(record, f"the record for {path}")
-        if path.exists() and json.loads(path.read_text())["methods"] != record["methods"]:
+        if path in saved and saved[path]["methods"] != record["methods"]:
             raise ValueError(f"{path} holds another run of {record['task']} {record['policy']} seed {record['seed']}: "
                              "move it away to replace it")
     for path, record in zip(paths, records):
-        if path.exists():  # the same run: keep the timings it was saved with
-            record = _with_timings(record, json.loads(path.read_text()))
+        if path in saved:  # the same run: keep the timings it was saved with
+            record = _with_timings(record, saved[path])
         atomic_write(path, json.dumps(record, indent=1) + "\n")
     return paths
 

@@ -5,8 +5,8 @@ Every stage writes an artifact under ``cfg.out`` and is skipped once that artifa
 dataset marked complete in its ``meta.json``, a training at its last step); an interrupted stage
 resumes. ``redo=[world_model]`` runs that stage and the later ones again from scratch, keeping
 the previous runs aside. Each finished stage adds a line to ``<out>/stages/<task>/<run name>.jsonl``
-(the wall time of the attempt that finished it, the job's peak memory), which the run's record keeps. ``examples/train_dp3_wm.py`` is
-this function behind a command line.
+(the wall time of the attempt that finished it, the job's peak memory), which the run's record
+keeps. ``examples/train_dp3_wm.py`` is this function behind a command line.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from torchrl_dalir.data import Source, collect
 from torchrl_dalir.data.storage import is_complete
 from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, calibrate_on_failures
 from torchrl_dalir.evaluation.compare import DALIR
-from torchrl_dalir.pipeline.config import STAGE_LOG, STAGES, PipelineConfig
+from torchrl_dalir.pipeline.config import STAGES, PipelineConfig
 from torchrl_dalir.pipeline.report import evaluate_and_report
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training import train_policy, train_world_model
@@ -59,7 +59,7 @@ def log_stage(cfg: PipelineConfig, name: str, seconds: float, memory: tuple[floa
     own, workers = (None, None) if memory is None else (round(m, 2) for m in memory)
     line = {"run": f"{cfg.task}/{cfg.run_name()}", "stage": name, "seconds": round(seconds, 1), "peak_memory_gib": own,
             "workers_peak_memory_gib": workers, "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-    path = Path(cfg.out) / STAGE_LOG / cfg.task / f"{cfg.run_name()}.jsonl"
+    path = cfg.stage_log_path()
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "a+b") as log:  # (appends go to the end whatever the position read)
         cut = False
