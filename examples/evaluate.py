@@ -3,6 +3,7 @@
     python examples/evaluate.py policy_checkpoint=outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt
     python examples/evaluate.py policy_checkpoint=.../checkpoint.pt world_model=.../world_model.pt episodes=100
     python examples/evaluate.py policy_checkpoint=... world_model=... methods=[random]   # the random-choice control
+    python examples/evaluate.py policy_checkpoint=... methods=[base,dropout]   # the base policy on point-dropout views
     python examples/evaluate.py policy_checkpoint=... world_model=... methods=[dalir] selection.rule=argmax   # another rule
     python examples/evaluate.py policy_checkpoint=... world_model=... video=2   # GIFs of the first 2 episodes of each method
 
@@ -37,7 +38,7 @@ class Config:
     num_candidates: int = 32
     dropout: float = 0.2
     actor_seed: int = 0
-    methods: list[str] | None = None  # among base, dalir, random (DALI-R's candidates chosen at random)
+    methods: list[str] | None = None  # among base, dalir, argmax, random (DALI-R's candidates chosen at random), dropout (one point-dropout candidate)
     selection: SelectionConfig | None = None  # DALI-R's rule (selection.rule=argmax ...); default: the checkpoint's
     common_noise: bool = True  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
     out: str = "outputs/evaluation"

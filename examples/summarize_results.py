@@ -43,10 +43,10 @@ from torchrl_dalir.config import parse_config
 from torchrl_dalir.evaluation.compare import METHODS, sign_test
 from torchrl_dalir.evaluation.paper import TABLE1, TABLE1_TASKS
 from torchrl_dalir.evaluation.plots import plot_success_by_task
-from torchrl_dalir.pipeline import PRESETS, STAGES, PipelineConfig
+from torchrl_dalir.pipeline import STAGES
 from torchrl_dalir.pipeline.records import (
+    DEFAULT_VARIANT,
     PAPER,
-    config_variant,
     discordant,
     load_records,
     merge_records,
@@ -54,8 +54,6 @@ from torchrl_dalir.pipeline.records import (
     save_records,
 )
 from torchrl_dalir.utils import atomic_write
-
-DEFAULT_VARIANT = config_variant(parse_config(PipelineConfig, [], PRESETS))  # the cpu preset's: frozen+explore
 
 TRUSTED = (("base", "base policy"), ("dalir", "DALI-R, calibrated rule"), ("argmax", "DALI-R, arg-max (paper)"), ("random", "random candidate"))
 

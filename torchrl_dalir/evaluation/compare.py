@@ -17,11 +17,13 @@ from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.reranking import PointDropout, RandomCandidateActor, RerankingActor, SearchConfig
 from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
+from torchrl_dalir.reranking.candidates import DropoutPolicy
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.seeds import check_eval_seed
 
-BASE, DALIR, ARGMAX, RANDOM = "base policy", "DALI-R", "DALI-R argmax", "random candidate"
-METHODS = {"base": BASE, "dalir": DALIR, "argmax": ARGMAX, "random": RANDOM}  # short names for command lines
+BASE, DALIR, ARGMAX, RANDOM, DROPOUT = "base policy", "DALI-R", "DALI-R argmax", "random candidate", "point-dropout policy"
+METHODS = {"base": BASE, "dalir": DALIR, "argmax": ARGMAX, "random": RANDOM, "dropout": DROPOUT}  # short names for command lines
+WITHOUT_WORLD_MODEL = ("base", "dropout")  # the methods that run on the policy checkpoint alone
 COMMON_NOISE = True  # evaluations sample DALI-R's clean candidate as the base policy does (RerankingActor's common_noise)
 
 
@@ -65,8 +67,10 @@ def evaluate_checkpoints(
 
     ``methods`` picks among ``"base"``, ``"dalir"`` (DALI-R choosing by ``selection``, by default
     the rule stored in the world-model checkpoint), ``"argmax"`` (DALI-R with the paper's arg-max
-    of the state scorer, whatever the checkpoint names) and ``"random"``
-    (:class:`RandomCandidateActor`, DALI-R's candidates chosen at random); by default the base
+    of the state scorer, whatever the checkpoint names), ``"random"``
+    (:class:`RandomCandidateActor`, DALI-R's candidates chosen at random) and ``"dropout"`` (the base
+    policy acting on a point-dropout view, :class:`DropoutPolicy`: one perturbed candidate per
+    decision, none generated to choose among; it needs no world model); by default the base
     policy, and DALI-R if there is a world model. ``common_noise`` (the default) gives the reranking
     methods' clean candidate the base policy's own sampling noise (common random numbers, see
     :class:`RerankingActor`): keeping it replays the base policy's episode. ``candidates`` (a
@@ -95,8 +99,8 @@ def evaluate_checkpoints(
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown methods {sorted(unknown)}; choose among {sorted(METHODS)}")
-    if world_model_path is None and set(methods) - {"base"}:
-        raise ValueError(f"methods {methods} rerank candidates: they need a world_model_path")
+    if world_model_path is None and set(methods) - set(WITHOUT_WORLD_MODEL):
+        raise ValueError(f"methods {sorted(set(methods) - set(WITHOUT_WORLD_MODEL))} rerank candidates: they need a world_model_path")
     policy = load_policy(policy_path, device)
     if world_model_path is not None:  # fails now, not after the base policy's episodes
         stored = load_world_model(world_model_path, policy=policy).selection
@@ -117,6 +121,8 @@ def evaluate_checkpoints(
         start = time.perf_counter()
         if method == "base":
             actor, describe = receding_horizon(policy), None
+        elif method == "dropout":
+            actor, describe = receding_horizon(DropoutPolicy(policy, dropout, actor_seed)), None
         else:
             chooser = reranking[method].on_policy(
                 policy, world_model_path, device, num_candidates=num_candidates, seed=actor_seed, common_noise=common_noise,

@@ -49,6 +49,9 @@ def config_variant(cfg: PipelineConfig) -> str:
     return variant_label(cfg.run_name(), cfg.policy, cfg.seed)
 
 
+DEFAULT_VARIANT = config_variant(parse_config(PipelineConfig, [], PRESETS))  # the cpu preset's: frozen+explore
+
+
 def outcome_string(records: list[dict]) -> str:
     """Episode records (each with ``success``) as one string of outcomes, ``"0110..."`` in episode order."""
     return "".join("1" if r["success"] else "0" for r in records)

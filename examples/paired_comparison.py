@@ -1,0 +1,111 @@
+"""Two methods on the same test episodes of chosen runs: per run and pooled, with the sign test.
+
+    python examples/paired_comparison.py runs=[dp/stick-pull/1,dp/stick-pull/2] method=random against=base
+    python examples/paired_comparison.py runs=[dp/stick-pull/2] method=dropout \\
+        evaluations=[outputs/evaluation/evaluation.json] json=docs/results/<name>.json
+
+Reads the committed run records (``records``, :mod:`torchrl_dalir.pipeline.records`) of ``runs``
+(``<policy>/<task>/<seed>`` of world-model variant ``variant``) and counts, per run, the test
+episodes that only ``against`` and only ``method`` solved; then pools them over the runs with the
+exact two-sided sign test. It answers a question fixed before the runs (a preregistered rule
+names its runs and methods), so it reads only the runs it is given.
+
+``evaluations`` adds methods that the main job did not run: the ``evaluation.json`` of
+``examples/evaluate.py`` on a run's checkpoints, one per run in the order of ``runs``, on the
+record's test episodes (its evaluation seed and episode count; refused otherwise). Prints a
+markdown table; ``json`` also writes the counts.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from torchrl_dalir.config import parse_config
+from torchrl_dalir.evaluation.compare import METHODS, sign_test
+from torchrl_dalir.pipeline.records import DEFAULT_VARIANT, SHORT, discordant, load_records, outcome_string
+from torchrl_dalir.utils import atomic_write
+
+
+@dataclass
+class Config:
+    runs: list[str] = field(default_factory=list)  # <policy>/<task>/<seed>, e.g. dp/stick-pull/1
+    method: str = "random"
+    against: str = "base"
+    records: list[str] = field(default_factory=lambda: ["docs/results/runs"])
+    variant: str = DEFAULT_VARIANT
+    evaluations: list[str] = field(default_factory=list)  # examples/evaluate.py outputs, one per run
+    json: str | None = None
+
+    def __post_init__(self):
+        if not self.runs:
+            raise ValueError("name the runs to compare: runs=[<policy>/<task>/<seed>, ...]")
+        unknown = {self.method, self.against} - set(METHODS)
+        if unknown:
+            raise ValueError(f"unknown methods {sorted(unknown)}; choose among {sorted(METHODS)}")
+        if self.evaluations and len(self.evaluations) != len(self.runs):
+            raise ValueError(f"{len(self.evaluations)} evaluations for {len(self.runs)} runs: give one per run, in order")
+
+
+def with_evaluation(record: dict, evaluation: dict, where: str) -> dict:
+    """``record`` with the methods of an ``examples/evaluate.py`` output added, after checking that
+    they ran the record's test episodes."""
+    config = evaluation["config"]
+    if (config["seed"], config["episodes"]) != (record["eval_seed"], record["episodes"]):
+        raise ValueError(f"{where} ran {config['episodes']} episodes of evaluation seed {config['seed']}, not the record's "
+                         f"{record['episodes']} of seed {record['eval_seed']}")
+    added = {SHORT[name]: {"success_rate": row["success_rate"], "outcomes": outcome_string(row["records"])}
+             for name, row in evaluation["success"].items()}
+    return {**record, "methods": {**record["methods"], **added}}
+
+
+def compare(cfg: Config) -> dict:
+    records = {(r["policy"], r["task"], str(r["seed"])): r for r in load_records(cfg.records) if r["variant"] == cfg.variant}
+    rows, pooled = [], [0, 0]
+    for position, run in enumerate(cfg.runs):
+        key = tuple(run.split("/"))
+        if key not in records:
+            raise ValueError(f"no {cfg.variant} record of run {run} under {cfg.records}")
+        record = records[key]
+        if cfg.evaluations:
+            path = Path(cfg.evaluations[position])
+            record = with_evaluation(record, json.loads(path.read_text()), str(path))
+        missing = {cfg.method, cfg.against} - set(record["methods"])
+        if missing:
+            raise ValueError(f"the record of run {run} has no {sorted(missing)}")
+        counts = discordant(record, cfg.method, cfg.against)
+        if counts is None:
+            raise ValueError(f"the record of run {run} keeps no per-episode outcomes of {cfg.method} and {cfg.against}")
+        pooled = [pooled[0] + counts[0], pooled[1] + counts[1]]
+        rows.append({"run": run, "episodes": record["episodes"], "eval_seed": record["eval_seed"],
+                     cfg.against: record["methods"][cfg.against]["success_rate"], cfg.method: record["methods"][cfg.method]["success_rate"],
+                     "against_only": counts[0], "method_only": counts[1], "net": counts[1] - counts[0]})
+    test = sign_test(*pooled)
+    return {"method": cfg.method, "against": cfg.against, "variant": cfg.variant, "runs": rows,
+            "pooled": {"against_only": pooled[0], "method_only": pooled[1], "p_two_sided": test["p_value"]},
+            "largest_net_loss": max(0, -min(row["net"] for row in rows))}
+
+
+def markdown(result: dict) -> str:
+    method, against = result["method"], result["against"]
+    lines = [f"| run | episodes | {against} (%) | {method} (%) | only {against} / only {method} |", "| --- | --- | --- | --- | --- |"]
+    for row in result["runs"]:
+        lines.append(f"| {row['run']} | {row['episodes']} | {100 * row[against]:.0f} | {100 * row[method]:.0f} | "
+                     f"{row['against_only']} / {row['method_only']} |")
+    pooled = result["pooled"]
+    lines.append(f"| pooled | | | | {pooled['against_only']} / {pooled['method_only']} (two-sided p = {pooled['p_two_sided']:.3f}) |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> None:
+    cfg: Config = parse_config(Config, argv)
+    result = compare(cfg)
+    print(markdown(result))
+    if cfg.json:
+        atomic_write(Path(cfg.json), json.dumps({"command": "python examples/paired_comparison.py " + " ".join(argv), **result}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
