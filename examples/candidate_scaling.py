@@ -28,7 +28,7 @@ from torchrl_dalir.checkpoints import load_policy, load_world_model
 from torchrl_dalir.config import check_at_least, check_choice, config_dict, parse_config
 from torchrl_dalir.evaluation.compare import (
     METHODS,
-    WITHOUT_WORLD_MODEL,
+    RERANKING,
     check_evaluation_settings,
     evaluate_checkpoints,
     paired_sign_test,
@@ -39,7 +39,6 @@ from torchrl_dalir.pipeline.records import outcome_string, successes
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.utils import atomic_write, measured_once, writable_dir
 
-RERANKING = tuple(m for m in METHODS if m not in WITHOUT_WORLD_MODEL)  # argmax, random, dalir: each at every candidate count
 BASE_INPUTS = ("episodes", "seed", "device", "actor_seed")  # what the base policy's row depends on, besides the policy
 
 

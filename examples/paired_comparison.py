@@ -7,13 +7,16 @@
 Reads the committed run records (``records``, :mod:`torchrl_dalir.pipeline.records`) of ``runs``
 (``<policy>/<task>/<seed>`` of world-model variant ``variant``) and counts, per run, the test
 episodes that only ``against`` and only ``method`` solved; then pools them over the runs with the
-exact two-sided sign test. It answers a question fixed before the runs (a preregistered rule
-names its runs and methods), so it reads only the runs it is given.
+exact two-sided sign test, and the largest net loss of one run. It reads only the runs it is
+given: a question fixed before the runs (e.g. ``docs/results/dropout_pick_prereg.json``) names its
+runs and methods, and its threshold is read off the counts.
 
 ``evaluations`` adds methods that the main job did not run: the ``evaluation.json`` of
-``examples/evaluate.py`` on a run's checkpoints, one per run in the order of ``runs``, on the
-record's test episodes (its evaluation seed and episode count; refused otherwise). Prints a
-markdown table; ``json`` also writes the counts.
+``examples/evaluate.py`` on a run's checkpoints, one per run in the order of ``runs``. Each must
+have run the record's test episodes with the run's own policy checkpoint
+(``.../<task>/<policy>_seed<seed>/checkpoint.pt``) and ``actor_seed`` (the run's seed, as the main
+job); a method the record holds too must have the record's outcomes. Prints a markdown table;
+``json`` also writes the counts.
 """
 
 from __future__ import annotations
@@ -45,24 +48,41 @@ class Config:
         unknown = {self.method, self.against} - set(METHODS)
         if unknown:
             raise ValueError(f"unknown methods {sorted(unknown)}; choose among {sorted(METHODS)}")
+        if self.method == self.against:
+            raise ValueError(f"method and against are both {self.method!r}: compare two methods")
+        if len(set(self.runs)) != len(self.runs):
+            raise ValueError(f"runs {self.runs} name a run twice: its episodes would count twice")
         if self.evaluations and len(self.evaluations) != len(self.runs):
             raise ValueError(f"{len(self.evaluations)} evaluations for {len(self.runs)} runs: give one per run, in order")
 
 
 def with_evaluation(record: dict, evaluation: dict, where: str) -> dict:
     """``record`` with the methods of an ``examples/evaluate.py`` output added, after checking that
-    they ran the record's test episodes."""
-    config = evaluation["config"]
+    they ran the record's test episodes with the record's policy and actor seed, and that a method
+    the record holds too has the record's outcomes."""
+    config, run = evaluation["config"], f"{record['task']} {record['policy']} seed {record['seed']}"
     if (config["seed"], config["episodes"]) != (record["eval_seed"], record["episodes"]):
         raise ValueError(f"{where} ran {config['episodes']} episodes of evaluation seed {config['seed']}, not the record's "
                          f"{record['episodes']} of seed {record['eval_seed']}")
+    checkpoint = Path(config["policy_checkpoint"])
+    if checkpoint.parent.name != f"{record['policy']}_seed{record['seed']}" or checkpoint.parent.parent.name != record["task"]:
+        raise ValueError(f"{where} evaluated {checkpoint}, not the policy of {run}")
+    if config["actor_seed"] != record["seed"]:
+        raise ValueError(f"{where} ran at actor_seed={config['actor_seed']}; the main job's {run} ran at {record['seed']}")
     added = {SHORT[name]: {"success_rate": row["success_rate"], "outcomes": outcome_string(row["records"])}
              for name, row in evaluation["success"].items()}
+    for name, row in added.items():
+        if name in record["methods"] and record["methods"][name].get("outcomes") != row["outcomes"]:
+            raise ValueError(f"{where}: {name}'s outcomes are not those of the record of {run}")
     return {**record, "methods": {**record["methods"], **added}}
 
 
 def compare(cfg: Config) -> dict:
-    records = {(r["policy"], r["task"], str(r["seed"])): r for r in load_records(cfg.records) if r["variant"] == cfg.variant}
+    records = {}
+    for record in load_records(cfg.records):
+        key = (record["policy"], record["task"], str(record["seed"]))
+        if record["variant"] == cfg.variant and records.setdefault(key, record) is not record:
+            raise ValueError(f"two {cfg.variant} records of run {'/'.join(key)} under {cfg.records}")
     rows, pooled = [], [0, 0]
     for position, run in enumerate(cfg.runs):
         key = tuple(run.split("/"))
@@ -96,7 +116,7 @@ def markdown(result: dict) -> str:
                      f"{row['against_only']} / {row['method_only']} |")
     pooled = result["pooled"]
     lines.append(f"| pooled | | | | {pooled['against_only']} / {pooled['method_only']} (two-sided p = {pooled['p_two_sided']:.3f}) |")
-    return "\n".join(lines)
+    return "\n".join(lines) + f"\n\nLargest net loss of one run: {result['largest_net_loss']} episodes."
 
 
 def main(argv: list[str]) -> None:

@@ -18,13 +18,3 @@ def test_keeping_the_clean_candidate_with_common_noise_replays_the_base_policy(t
     own = evaluate_checkpoints(policy_path, wm_path, common_noise=False, **kwargs)["DALI-R"]["records"]
     assert [(r["steps"], r["episode_return"]) for r in own] != base  # its own noise: other trajectories
 
-
-
-def test_the_point_dropout_policy_needs_no_world_model_replays_itself_and_plays_its_own_episodes(trained_world_model):
-    _, _, policy_path = trained_world_model
-    kwargs = dict(episodes=2, seed=1, progress=False, methods=["base", "dropout"])
-    rows = evaluate_checkpoints(policy_path, None, **kwargs)
-    again = evaluate_checkpoints(policy_path, None, **{**kwargs, "methods": ["dropout"]})["point-dropout policy"]
-    outcomes = {name: [(r["steps"], r["episode_return"]) for r in row["records"]] for name, row in rows.items()}
-    assert [(r["steps"], r["episode_return"]) for r in again["records"]] == outcomes["point-dropout policy"]  # seeded by actor_seed
-    assert outcomes["point-dropout policy"] != outcomes["base policy"]  # perturbed views, its own noise: other actions

@@ -50,6 +50,18 @@ def test_evaluate_checkpoints_refuses_unknown_methods_and_reranking_without_a_wo
         evaluate_checkpoints("policy.pt", None, methods=["random"])
 
 
+def test_the_point_dropout_policy_needs_no_world_model_replays_itself_and_plays_its_own_episodes(trained_policy):
+    from torchrl_dalir.evaluation.compare import evaluate_checkpoints
+
+    _, policy_path = trained_policy
+    kwargs = dict(episodes=2, seed=1, progress=False, methods=["base", "dropout"])
+    rows = evaluate_checkpoints(policy_path, None, **kwargs)
+    again = evaluate_checkpoints(policy_path, None, **{**kwargs, "methods": ["dropout"]})["point-dropout policy"]
+    outcomes = {name: [(r["steps"], r["episode_return"]) for r in row["records"]] for name, row in rows.items()}
+    assert [(r["steps"], r["episode_return"]) for r in again["records"]] == outcomes["point-dropout policy"]  # seeded by actor_seed
+    assert outcomes["point-dropout policy"] != outcomes["base policy"]  # perturbed views, its own noise: other actions
+
+
 def test_summarize_evaluations_pairs_every_run_against_the_base_policy(tmp_path, monkeypatch, capsys):
     import json
     import runpy

@@ -23,7 +23,7 @@ from torchrl_dalir.seeds import check_eval_seed
 
 BASE, DALIR, ARGMAX, RANDOM, DROPOUT = "base policy", "DALI-R", "DALI-R argmax", "random candidate", "point-dropout policy"
 METHODS = {"base": BASE, "dalir": DALIR, "argmax": ARGMAX, "random": RANDOM, "dropout": DROPOUT}  # short names for command lines
-WITHOUT_WORLD_MODEL = ("base", "dropout")  # the methods that run on the policy checkpoint alone
+RERANKING = ("dalir", "argmax", "random")  # the methods that choose among candidates: they need a world model
 COMMON_NOISE = True  # evaluations sample DALI-R's clean candidate as the base policy does (RerankingActor's common_noise)
 
 
@@ -99,8 +99,8 @@ def evaluate_checkpoints(
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown methods {sorted(unknown)}; choose among {sorted(METHODS)}")
-    if world_model_path is None and set(methods) - set(WITHOUT_WORLD_MODEL):
-        raise ValueError(f"methods {sorted(set(methods) - set(WITHOUT_WORLD_MODEL))} rerank candidates: they need a world_model_path")
+    if world_model_path is None and set(methods) & set(RERANKING):
+        raise ValueError(f"methods {sorted(set(methods) & set(RERANKING))} rerank candidates: they need a world_model_path")
     policy = load_policy(policy_path, device)
     if world_model_path is not None:  # fails now, not after the base policy's episodes
         stored = load_world_model(world_model_path, policy=policy).selection

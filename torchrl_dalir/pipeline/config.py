@@ -44,7 +44,8 @@ class PipelineConfig:
         and added to the world model's data (0: none, the paper's data; the ``cpu`` preset: 60).
     eval_episodes, eval_seed: the test episodes, shared by every method (``eval_methods``: the
         base policy, DALI-R with the calibrated rule, with the paper's arg-max, and the
-        random-candidate control; see :func:`~torchrl_dalir.evaluation.compare.evaluate_checkpoints`).
+        random-candidate control; ``dropout`` adds the point-dropout policy; see
+        :func:`~torchrl_dalir.evaluation.compare.evaluate_checkpoints`).
     calibration_episodes, calibration_seed: the validation episodes on which the selection
         rule's setting is chosen (:mod:`torchrl_dalir.evaluation.calibration`); never the test seed.
         ``calibration_episodes=0`` keeps the paper's arg-max.
