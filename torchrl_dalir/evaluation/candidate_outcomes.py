@@ -21,40 +21,16 @@ import torch
 from scipy.stats import mannwhitneyu, rankdata, spearmanr
 from tqdm.auto import tqdm
 
-from torchrl_dalir import keys
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
-from torchrl_dalir.envs.history import latest_history
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 from torchrl_dalir.reranking.actor import RerankingActor
+from torchrl_dalir.reranking.branching import execute_actions, observation_history, stack_observations
 from torchrl_dalir.seeds import eval_episode_seed
-
-
-def _stack(observations: list[dict], device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    cloud = torch.as_tensor(np.stack([o[keys.POINT_CLOUD] for o in observations]), device=device)
-    agent_pos = torch.as_tensor(np.stack([o[keys.AGENT_POS] for o in observations]), device=device)
-    return cloud, agent_pos
-
-
-def _execute(env: PointCloudObservation, actions: np.ndarray) -> tuple[list[dict], bool, bool]:
-    """Steps ``actions`` until the episode ends; the observations, success, and whether it ended."""
-    observations, success, ended = [], False, False
-    for action in actions:
-        observation, _, terminated, truncated, info = env.step(action)
-        observations.append(observation)
-        success, ended = bool(info[keys.SUCCESS][0]), terminated or truncated
-        if ended:
-            break
-    return observations, success, ended
-
-
-def _history(policy, observations: list[dict], device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """The policy's input ``[1, To, ...]``: the history of the latest of an episode's ``observations``."""
-    return tuple(x[None] for x in _stack(latest_history(observations, policy.config.obs_steps), device))
 
 
 def _base_chunk(policy, observations: list[dict], generator: torch.Generator, device: torch.device) -> np.ndarray:
     """The executed actions of one base-policy chunk (clean observations) after the episode's ``observations``."""
-    cloud, agent_pos = _history(policy, observations, device)
+    cloud, agent_pos = observation_history(policy, observations, device)
     chunk = policy.sample(policy.encode(cloud, agent_pos), generator)[0]
     return chunk[policy.config.executed].cpu().numpy()
 
@@ -62,7 +38,7 @@ def _base_chunk(policy, observations: list[dict], generator: torch.Generator, de
 def _follow_through(env: PointCloudObservation, policy, observations: list[dict], generator: torch.Generator, device: torch.device) -> bool:
     """Runs the base policy after the episode's ``observations`` until the episode ends; whether it succeeded."""
     while True:
-        new_observations, success, ended = _execute(env, _base_chunk(policy, observations, generator, device))
+        new_observations, success, ended = execute_actions(env, _base_chunk(policy, observations, generator, device))
         if ended:
             return success
         observations = observations + new_observations
@@ -116,7 +92,7 @@ def candidate_outcomes(
             observations = [observation]  # the episode's so far
             for decision in range(decisions):
                 if decision % stride:
-                    clean_observations, _, ended = _execute(env, _base_chunk(policy, observations, base_generator, device))
+                    clean_observations, _, ended = execute_actions(env, _base_chunk(policy, observations, base_generator, device))
                 else:
                     record, clean_observations, ended = _try_candidates(actor, env, observations, base_generator, follow_through, device)
                     records.append({"episode": episode, "decision": decision, **record})
@@ -130,21 +106,21 @@ def candidate_outcomes(
 
 def _try_candidates(actor: RerankingActor, env: PointCloudObservation, observations: list[dict], base_generator, follow_through: bool, device):
     """One decision's record after the episode's ``observations``; leaves ``env`` after the clean candidate's actions."""
-    cloud, agent_pos = _history(actor.policy, observations, device)
+    cloud, agent_pos = observation_history(actor.policy, observations, device)
     chunks, scores = actor.propose(cloud, agent_pos)
     imagined = actor.imagine(cloud, agent_pos, chunks)[0]
     executed = chunks[0, :, actor.policy.config.executed].cpu().numpy()
     start, outcomes, final_success = env.get_state(), [], []
     for k, actions in enumerate(executed):
         env.set_state(start)
-        outcome, success, ended = _execute(env, actions)
+        outcome, success, ended = execute_actions(env, actions)
         outcomes.append((outcome, success, ended))
         if k == 0:
             after_clean = env.get_state()
         if follow_through:
             final_success.append(success if ended else _follow_through(env, actor.policy, observations + outcome, base_generator, device))
     env.set_state(after_clean)
-    real = actor.encoder(*_stack([o[-1] for o, _, _ in outcomes], device))
+    real = actor.encoder(*stack_observations([o[-1] for o, _, _ in outcomes], device))
     real_score = torch.sigmoid(actor.scorer(real))
     scores = scores[0].cpu()
     record = {
