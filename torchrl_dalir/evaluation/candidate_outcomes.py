@@ -141,6 +141,24 @@ def _try_candidates(actor: RerankingActor, env: PointCloudObservation, observati
     return record, clean_observations, ended
 
 
+def within_decision_auc(scores, successes) -> float:
+    """The area under the ROC curve of ``scores`` for telling a decision's successful candidates from its
+    failed ones (Mann-Whitney U over the decision's (success, failure) pairs; ties count a half),
+    averaged over the decisions whose candidates split; NaN if none does. ``scores`` and
+    ``successes``: one sequence per decision, ``[K]`` each.
+
+    Example:
+        >>> within_decision_auc([[0.9, 0.1, 0.5], [0.2, 0.2], [0.3, 0.7]], [[True, False, False], [True, False], [True, True]])
+        0.75
+    """
+    values = []
+    for score, success in zip(scores, successes):
+        score, success = np.asarray(score, dtype=float), np.asarray(success, dtype=bool)
+        if 0 < success.sum() < len(success):
+            values.append(mannwhitneyu(score[success], score[~success]).statistic / (success.sum() * (~success).sum()))
+    return float(np.mean(values)) if values else float("nan")
+
+
 def summarize_candidate_outcomes(records: list[dict]) -> dict:
     """Medians over decisions; how DALI-R's pick ranks among the candidates' real scores; at
     decisions where only some candidates finish the task within their actions, how often the pick
@@ -226,12 +244,7 @@ def _follow_through_summary(records: list[dict]) -> dict:
     split = [r for r in records if 0 < sum(r["final_success"]) < len(r["final_success"])]
 
     def auc(score: str) -> float:
-        """Mann-Whitney U over (successful, failed) pairs, averaged over the split decisions."""
-        values = []
-        for r in split:
-            scores, success = np.array(r[score]), np.array(r["final_success"])
-            values.append(mannwhitneyu(scores[success], scores[~success]).statistic / (success.sum() * (~success).sum()))
-        return float(np.mean(values)) if values else float("nan")
+        return within_decision_auc([r[score] for r in split], [r["final_success"] for r in split])
 
     return {
         "final_success_clean": rate(lambda r: 0),

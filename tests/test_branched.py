@@ -1,0 +1,114 @@
+"""Branched outcomes (data from the same state) and the scorer that ranks within a state."""
+
+import math
+
+import pytest
+import torch
+from conftest import SHORT_REACH
+from tensordict import TensorDict
+
+from torchrl_dalir.data import branched
+from torchrl_dalir.data.branched import BranchedOutcomes, collect_branched
+from torchrl_dalir.evaluation.candidate_ceiling import make_generator
+from torchrl_dalir.modules import PolicyConfig, TaskCompletionScorer, make_policy
+from torchrl_dalir.objectives.within_state_ranking import WithinStateRankingLoss
+from torchrl_dalir.training.ranking import RankingTrainingConfig, train_ranking_scorer
+
+
+def test_ranking_loss_exact_values_and_only_split_decisions_rank():
+    loss = WithinStateRankingLoss(torch.nn.Identity(), outcome_weight=0.5)
+    logits = torch.tensor([[0.0, 0.0], [3.0, -1.0]])  # the second decision does not split: no ranking term
+    out = loss(TensorDict(candidate_features=logits, success=torch.tensor([[True, False], [True, True]]), batch_size=[2]))
+    assert math.isclose(out["loss_ranking"].item(), math.log(2), rel_tol=1e-6)
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, torch.tensor([[1.0, 0.0], [1.0, 1.0]]))
+    assert math.isclose(out["loss_outcome"].item(), 0.5 * bce.item(), rel_tol=1e-6)
+
+
+def test_ranking_loss_prefers_the_winner_on_a_toy_decision():
+    # Two states, two candidates each: the winner is the candidate whose feature matches the state's sign.
+    torch.manual_seed(0)
+    features = torch.tensor([[[1.0, 1.0], [1.0, -1.0]], [[-1.0, 1.0], [-1.0, -1.0]]])
+    success = torch.tensor([[True, False], [False, True]])
+    scorer = TaskCompletionScorer(2, hidden=16)
+    loss = WithinStateRankingLoss(scorer, outcome_weight=0.0)
+    batch = TensorDict(candidate_features=features, success=success, batch_size=[2])
+    optimizer = torch.optim.Adam(scorer.parameters(), lr=1e-2)
+    first = loss(batch)["loss_ranking"].item()
+    for _ in range(200):
+        optimizer.zero_grad()
+        loss(batch)["loss_ranking"].backward()
+        optimizer.step()
+    assert loss(batch)["loss_ranking"].item() < 0.1 * first
+    logits = scorer(features)
+    assert logits[0, 0] > logits[0, 1] and logits[1, 1] > logits[1, 0]
+
+
+def _policy():
+    torch.manual_seed(0)
+    policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4,
+                         task="reach", num_points=40)
+    policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 2 - 1)
+    return policy
+
+
+def test_branched_stage_resumes_to_identical_rows_after_a_kill(tmp_path, monkeypatch):
+    policy, generator = _policy(), make_generator("noise", 0.0)
+    settings = dict(task=SHORT_REACH, name="noise", strength=0.0, num_candidates=3, episodes=2, stride=4, seed=7, progress=False)
+    reference = collect_branched(policy, tmp_path / "whole", generator, **settings)
+    assert len(reference) == 2 * 3  # 80 steps: decisions 0, 4 and 8 of each episode
+    assert reference.rows["action_chunk"].shape == (6, 3, 16, 4) and reference.rows["success"].shape == (6, 3)
+    assert reference.rows["decision"].tolist() == [0, 4, 8, 0, 4, 8]
+    assert reference.rows["reset_seed"].tolist() == [7, 7, 7, 8, 8, 8]
+    failed = ~reference.rows["success"]
+    assert (reference.rows["steps_to_success"][failed] == -1).all()
+
+    memmap = branched._memmap_atomically
+    def killed(rows, directory):
+        if directory.name == "00001":
+            raise KeyboardInterrupt
+        memmap(rows, directory)
+    monkeypatch.setattr(branched, "_memmap_atomically", killed)
+    with pytest.raises(KeyboardInterrupt):
+        collect_branched(policy, tmp_path / "killed", generator, **settings)
+    with pytest.raises(ValueError, match="unfinished"):
+        BranchedOutcomes.load(tmp_path / "killed")
+    monkeypatch.setattr(branched, "_memmap_atomically", memmap)
+    resumed = collect_branched(policy, tmp_path / "killed", generator, **settings)
+    assert (resumed.rows == reference.rows).all()
+    with pytest.raises(ValueError, match="another plan"):
+        collect_branched(policy, tmp_path / "killed", generator, **{**settings, "stride": 2})
+
+
+def test_ranking_scorer_trains_and_reports_held_out_auc():
+    # Synthetic branched decisions: the winners are the candidates whose first action is largest.
+    policy = _policy()
+    g = torch.Generator().manual_seed(0)
+    chunks = torch.rand(80, 4, 16, 4, generator=g) * 2 - 1
+    push = chunks[:, :, 1:9, 0].mean(-1)
+    success = push > push.median(dim=1, keepdim=True).values
+    rows = TensorDict({"point_cloud": torch.rand(80, 2, 40, 3, generator=g), "agent_pos": torch.rand(80, 2, 4, generator=g),
+                       "action_chunk": chunks, "success": success, "reset_seed": torch.arange(80) // 4}, [80])
+    scorer, metrics = train_ranking_scorer(rows, policy, RankingTrainingConfig(steps=300, hidden=32, seed=0))
+    assert metrics["held_out_split_decisions"] == 24 and metrics["train_split_decisions"] == 56
+    assert metrics["loss_end"]["loss_ranking"] < metrics["loss_start"]["loss_ranking"]
+    assert metrics["held_out_auc"] > 0.8
+
+
+def test_script_collects_trains_both_variants_and_reruns_from_the_stored_data(trained_policy, tmp_path):
+    import json
+    import runpy
+    from pathlib import Path
+
+    _, checkpoint = trained_policy
+    main = runpy.run_path(str(Path(__file__).resolve().parents[1] / "examples" / "paper" / "branched_ranking.py"))["main"]
+    argv = [f"policy={checkpoint}", "episodes=2", "num_candidates=2", "stride=8", "training.steps=5", f"out={tmp_path}",
+            "progress=false", f"json={tmp_path / 'ranking.json'}"]
+    first = main(argv)
+    assert set(first["variants"]) == {"ranking", "outcome"}
+    assert 2 <= first["decisions"] <= 2 * 4  # every 8th decision of 2 episodes of at most 200 steps: 0, 8, 16, 24
+    stored = json.loads((tmp_path / "ranking.json").read_text())
+    assert json.dumps(stored["variants"]) == json.dumps(first["variants"])  # NaN AUC where no held-out decision splits
+    again = main(argv)  # the stored outcomes are loaded, not collected again
+    assert json.dumps(again["variants"]) == json.dumps(first["variants"])
+    with pytest.raises(ValueError, match="generator"):
+        main([*argv, "generator=dropuot"])

@@ -1,0 +1,172 @@
+"""Branched outcomes: which of several chunks, executed from one simulator state, goes on to succeed.
+
+The mixed data labels trajectories, so a scorer trained on it learns outcomes *across* states and
+never sees candidates from the same state compete. Here, along base-policy episodes on data seeds,
+every candidate of a decision is executed from the saved state and continued with the base policy
+to the episode's end (common random numbers, as in
+:mod:`~torchrl_dalir.evaluation.candidate_ceiling`), and each decision is stored as one row:
+
+==================  ===============  ===============================================================
+key                 shape            meaning
+==================  ===============  ===============================================================
+``point_cloud``     ``[To, N, 3]``   the decision's observation history
+``agent_pos``       ``[To, D]``      its robot state history
+``action_chunk``    ``[K, H, A]``    the candidates (0: the base policy's own chunk)
+``success``         ``[K]`` bool     whether each candidate's branch succeeded by the episode's end
+``steps_to_success````[K]`` int      steps from the decision to that success (-1: none)
+``reset_seed``      ``[]``           the episode's reset seed (a data seed)
+``decision``        ``[]``           the decision's index in its episode
+==================  ===============  ===============================================================
+
+Layout and crash safety follow :mod:`~torchrl_dalir.data.storage`: ``meta.json``, one memory-mapped
+shard per finished episode (renamed into place), then ``rows/`` once complete. A killed collection
+resumes at its first unfinished episode and gives the same rows.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.data import ReplayBuffer, TensorStorage
+from tqdm.auto import tqdm
+
+from torchrl_dalir import keys
+from torchrl_dalir.config import check_at_least
+from torchrl_dalir.data.storage import _memmap_atomically, _read_json
+from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+from torchrl_dalir.envs.history import latest_history
+from torchrl_dalir.envs.tasks import TaskSpec, get_task
+from torchrl_dalir.reranking.branching import branch, candidate_chunks, continue_base, executed_actions
+from torchrl_dalir.seeds import check_data_seed
+from torchrl_dalir.utils import atomic_write, weights_digest
+
+SUCCESS, STEPS_TO_SUCCESS, RESET_SEED, DECISION = "success", "steps_to_success", "reset_seed", "decision"
+
+
+@dataclass
+class BranchedMeta:
+    """The contents of a branched dataset's ``meta.json``; ``plan()`` must match to resume."""
+
+    task: str
+    policy_digest: str
+    generator: str
+    strength: float
+    num_candidates: int
+    episodes: int
+    stride: int
+    seed: int
+    done_episodes: list[int] = field(default_factory=list)
+    complete: bool = False
+
+    def plan(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if k not in ("done_episodes", "complete")}
+
+
+def _episode_rows(env, policy, generator, name: str, reset_seed: int, num_candidates: int, stride: int, device) -> TensorDict:
+    """Every ``stride``-th decision of the base policy's episode reset with ``reset_seed``, branched."""
+    observation, _ = env.reset(seed=reset_seed)
+    decisions: list[tuple] = []
+    base_success, base_steps = continue_base(env, policy, [observation], reset_seed, 0, device,
+                                             visit=lambda _, obs: decisions.append((env.get_state(), obs)))
+    action_steps, rows = policy.config.action_steps, []
+    for j, (state, observations) in enumerate(decisions):
+        if j % stride:
+            continue
+        chunks = candidate_chunks(policy, generator, observations, num_candidates, reset_seed, j, name, device)
+        actions = executed_actions(policy, chunks)
+        outcomes = [(base_success, base_steps - j * action_steps)]  # the clean branch is the base episode from here
+        outcomes += [branch(env, policy, state, observations, actions[k], reset_seed, j, device) for k in range(1, num_candidates)]
+        history = latest_history(observations, policy.config.obs_steps)
+        rows.append(TensorDict({
+            keys.POINT_CLOUD: torch.as_tensor(np.stack([o[keys.POINT_CLOUD] for o in history])),
+            keys.AGENT_POS: torch.as_tensor(np.stack([o[keys.AGENT_POS] for o in history])),
+            keys.ACTION_CHUNK: chunks.cpu(),
+            SUCCESS: torch.tensor([won for won, _ in outcomes]),
+            STEPS_TO_SUCCESS: torch.tensor([steps if won else -1 for won, steps in outcomes]),
+            RESET_SEED: torch.tensor(reset_seed), DECISION: torch.tensor(j),
+        }, []))
+    return torch.stack(rows)
+
+
+def collect_branched(policy, root: str | Path, generator, *, task: str | TaskSpec | None = None, name: str = "dropout",
+                     strength: float = 0.2, num_candidates: int = 8, episodes: int = 20, stride: int = 2, seed: int = 0,
+                     progress: bool = True, device="cpu") -> BranchedOutcomes:
+    """Branches ``num_candidates`` candidates of ``generator`` (named ``name``, at ``strength``, for the
+    record) at every ``stride``-th decision of ``episodes`` base-policy episodes on data seeds
+    ``seed, seed + 1, ...`` of ``task`` (by default the policy's), and stores them under ``root`` (see the module docstring). Resumes an
+    unfinished collection with the same plan; refuses a folder that holds another plan."""
+    root = Path(root)
+    check_at_least("num_candidates", num_candidates, 2)
+    check_at_least("episodes", episodes, 1)
+    check_at_least("stride", stride, 1)
+    check_data_seed(seed)
+    check_data_seed(seed + episodes - 1)
+    spec, config = get_task(task if task is not None else policy.task), policy.config
+    meta = BranchedMeta(spec.name, weights_digest(policy), name, strength, num_candidates, episodes, stride, seed)
+    if (root / "meta.json").exists():
+        stored = BranchedMeta(**_read_json(root / "meta.json"))
+        if stored.plan() != meta.plan():
+            raise ValueError(f"{root} holds branched outcomes of another plan ({stored.plan()}), not {meta.plan()}: "
+                             "choose another folder or delete it")
+        if stored.complete:
+            return BranchedOutcomes.load(root)
+        meta.done_episodes = stored.done_episodes
+    root.mkdir(parents=True, exist_ok=True)
+    atomic_write(root / "meta.json", json.dumps(asdict(meta), indent=1))
+    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, decision_period=config.action_steps,
+                                history=config.obs_steps)
+    try:
+        for episode in tqdm([e for e in range(episodes) if e not in meta.done_episodes], desc=f"branch {spec.name}",
+                            disable=not progress):
+            rows = _episode_rows(env, policy, generator, name, seed + episode, num_candidates, stride, torch.device(device))
+            _memmap_atomically(rows, root / "episodes" / f"{episode:05d}")
+            meta.done_episodes = sorted([*meta.done_episodes, episode])
+            atomic_write(root / "meta.json", json.dumps(asdict(meta), indent=1))
+    finally:
+        env.close()
+    shards = [TensorDict.load_memmap(root / "episodes" / f"{e:05d}") for e in range(episodes)]
+    _memmap_atomically(torch.cat(shards), root / "rows")
+    meta.complete = True
+    atomic_write(root / "meta.json", json.dumps(asdict(meta), indent=1))
+    shutil.rmtree(root / "episodes")
+    return BranchedOutcomes.load(root)
+
+
+class BranchedOutcomes:
+    """A complete branched dataset: one row per decision (memory-mapped, read-only)."""
+
+    def __init__(self, root: Path, meta: BranchedMeta, rows: TensorDict):
+        self.root, self.meta, self.rows = root, meta, rows
+
+    @classmethod
+    def load(cls, root: str | Path) -> BranchedOutcomes:
+        root = Path(root)
+        if not (root / "meta.json").exists():
+            raise FileNotFoundError(f"no branched outcomes at {root} (no meta.json): collect them with collect_branched")
+        meta = BranchedMeta(**_read_json(root / "meta.json"))
+        if not meta.complete:
+            raise ValueError(f"the branched outcomes at {root} are unfinished ({len(meta.done_episodes)} of {meta.episodes} "
+                             "episodes): run collect_branched again to resume")
+        return cls(root, meta, TensorDict.load_memmap(root / "rows"))
+
+    def split_decisions(self) -> torch.Tensor:
+        """Which decisions' candidates split: some, not all, went on to succeed."""
+        wins = self.rows[SUCCESS].sum(-1)
+        return (wins > 0) & (wins < self.rows[SUCCESS].shape[-1])
+
+    def replay_buffer(self, batch_size: int | None = None, sampler=None) -> ReplayBuffer:
+        """A TorchRL replay buffer over the memory-mapped decisions (no copy); a sample is a batch of decisions."""
+        return ReplayBuffer(storage=TensorStorage(self.rows), sampler=sampler, batch_size=batch_size)
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __repr__(self) -> str:
+        return (f"BranchedOutcomes(task={self.meta.task!r}, decisions={len(self)}, split={int(self.split_decisions().sum())}, "
+                f"candidates={self.meta.num_candidates}, generator={self.meta.generator!r}, root={str(self.root)!r})")

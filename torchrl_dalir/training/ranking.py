@@ -1,0 +1,135 @@
+"""Training a scorer that ranks a decision's candidates, on branched outcomes, and measuring it.
+
+Two inputs, side by side (issue: the world model's error on the candidates exceeds their spread):
+
+- ``state_chunk``: the policy's condition of the decision's observation history, with the
+  candidate's executed actions (min-max normalised on the data): a Q-function of the chunk that
+  never passes through the world model;
+- ``imagined``: the world model's imagined latent after the chunk, as the paper's scorer reads it
+  (needs a world model and its latent encoder).
+
+The measure is the within-decision AUC on held-out decisions that split
+(:func:`~torchrl_dalir.evaluation.candidate_outcomes.within_decision_auc`), with the held-out
+decisions taken from whole episodes the scorer never saw.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from tensordict import TensorDict
+from torch import nn
+
+from torchrl_dalir import keys
+from torchrl_dalir.config import check_at_least, check_choice
+from torchrl_dalir.data.branched import RESET_SEED, SUCCESS, BranchedOutcomes
+from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
+from torchrl_dalir.modules.normalizer import MinMaxNormalizer
+from torchrl_dalir.modules.world_model import TaskCompletionScorer
+from torchrl_dalir.objectives.within_state_ranking import CANDIDATE_FEATURES, WithinStateRankingLoss
+
+INPUTS = ("state_chunk", "imagined")
+
+
+@dataclass
+class RankingTrainingConfig:
+    """Args:
+    input: what the scorer reads of a candidate (``INPUTS``).
+    hidden: the scorer MLP's width.
+    steps, batch_size, lr, weight_decay: AdamW on batches of decisions.
+    outcome_weight: the terminal-label loss beside the ranking loss (:class:`WithinStateRankingLoss`).
+    ranking: with ``False``, the terminal-label loss alone (the ablation: outcomes, no ranking).
+    held_out_fraction: the share of episodes (the last ones) held out for the measure.
+    seed: initialisation and batch order.
+    """
+
+    input: str = "state_chunk"
+    hidden: int = 128
+    steps: int = 1500
+    batch_size: int = 32
+    lr: float = 1e-3
+    weight_decay: float = 1e-3
+    outcome_weight: float = 0.5
+    ranking: bool = True
+    held_out_fraction: float = 0.3
+    seed: int = 0
+
+    def __post_init__(self):
+        check_choice("input", self.input, INPUTS)
+        for name in ("steps", "batch_size", "hidden"):
+            check_at_least(name, getattr(self, name), 1)
+        if not 0 < self.held_out_fraction < 1:
+            raise ValueError(f"held_out_fraction must lie in (0, 1), got {self.held_out_fraction}")
+
+
+@torch.no_grad()
+def candidate_features(rows: TensorDict, policy, input: str = "state_chunk", action_normalizer: MinMaxNormalizer | None = None,
+                       encoder=None, world_model=None) -> torch.Tensor:
+    """What the scorer reads of each candidate of branched decisions ``rows``: ``[B, K, F]``."""
+    cloud, agent_pos = rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]
+    executed = rows[keys.ACTION_CHUNK][:, :, policy.config.executed]  # [B, K, k, A]
+    num_candidates = executed.shape[1]
+    if input == "state_chunk":
+        state = policy.encode(cloud, agent_pos).unsqueeze(1).expand(-1, num_candidates, -1)
+        return torch.cat([state, action_normalizer(executed).flatten(-2)], -1)
+    if encoder is None or world_model is None:
+        raise ValueError("input=imagined needs the world model and its latent encoder")
+    latent = encoder(cloud[:, -1], agent_pos[:, -1]).unsqueeze(1).expand(-1, num_candidates, -1)
+    return world_model.imagine(latent, executed)
+
+
+def _held_out(rows: TensorDict, fraction: float) -> torch.Tensor:
+    """Which decisions belong to the held-out episodes: the last ``fraction`` of the episodes by reset seed."""
+    seeds = rows[RESET_SEED].unique(sorted=True)
+    cut = seeds[len(seeds) - max(1, round(fraction * len(seeds)))]
+    return rows[RESET_SEED] >= cut
+
+
+def train_ranking_scorer(outcomes: BranchedOutcomes, policy, cfg: RankingTrainingConfig, encoder=None, world_model=None,
+                         progress_every: int = 0) -> tuple[nn.Module, dict]:
+    """Trains a scorer on the training episodes of ``outcomes`` and measures it on the held-out ones.
+    Returns the scorer and its metrics: the losses at the start and end, and the within-decision AUC
+    on the training and the held-out decisions that split (with their counts)."""
+    torch.manual_seed(cfg.seed)
+    rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
+    executed = rows[keys.ACTION_CHUNK][:, :, policy.config.executed]
+    normalizer = MinMaxNormalizer(executed.shape[-1]).fit(executed)
+    table = TensorDict({CANDIDATE_FEATURES: candidate_features(rows, policy, cfg.input, normalizer, encoder, world_model),
+                        SUCCESS: rows[SUCCESS]}, [len(rows)])
+    held_out = _held_out(rows, cfg.held_out_fraction)
+    train, test = table[~held_out], table[held_out]
+    scorer = TaskCompletionScorer(table[CANDIDATE_FEATURES].shape[-1], hidden=cfg.hidden)
+    loss_module = WithinStateRankingLoss(scorer, cfg.outcome_weight if cfg.ranking else 1.0)
+    optimizer = torch.optim.AdamW(scorer.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    generator = torch.Generator().manual_seed(cfg.seed)
+
+    def total(losses: TensorDict) -> torch.Tensor:
+        return losses["loss_outcome"] + (losses["loss_ranking"] if cfg.ranking else 0)
+
+    with torch.no_grad():
+        first = {k: float(v) for k, v in loss_module(train).items()}
+    for step in range(cfg.steps):
+        batch = train[torch.randint(len(train), (min(cfg.batch_size, len(train)),), generator=generator)]
+        loss = total(loss_module(batch))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        if progress_every and step % progress_every == 0:
+            print(f"step {step}: {float(loss):.4f}", flush=True)
+    scorer.eval()
+    with torch.no_grad():
+        last = {k: float(v) for k, v in loss_module(train).items()}
+
+        def auc(part: TensorDict) -> float:
+            return within_decision_auc(scorer(part[CANDIDATE_FEATURES]).tolist(), part[SUCCESS].tolist())
+
+        def splits(part: TensorDict) -> int:
+            wins = part[SUCCESS].sum(-1)
+            return int(((wins > 0) & (wins < part[SUCCESS].shape[-1])).sum())
+
+        metrics = {"config": asdict(cfg), "loss_start": first, "loss_end": last,
+                   "train_decisions": len(train), "train_split_decisions": splits(train), "train_auc": auc(train),
+                   "held_out_decisions": len(test), "held_out_split_decisions": splits(test), "held_out_auc": auc(test)}
+    scorer.action_normalizer = normalizer
+    return scorer, metrics
