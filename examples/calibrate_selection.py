@@ -36,7 +36,8 @@ from torchrl_dalir.evaluation.calibration import (
     calibrate,
     calibrate_on_failures,
 )
-from torchrl_dalir.evaluation.compare import check_evaluation_settings
+from torchrl_dalir.evaluation.compare import COMMON_NOISE, check_evaluation_settings
+from torchrl_dalir.reranking import RerankingConfig
 from torchrl_dalir.seeds import check_eval_seed
 from torchrl_dalir.utils import atomic_write, writable_dir
 
@@ -57,10 +58,10 @@ class Config:
     max_episodes: int = MAX_EPISODES  # design=failures: the most episodes the screen runs
     write: bool = True  # store the chosen setting in the world-model checkpoint
     device: str = "cpu"
-    num_candidates: int = 32
-    dropout: float = 0.2
+    num_candidates: int = RerankingConfig.num_candidates
+    dropout: float = RerankingConfig.dropout
     actor_seed: int = 0
-    common_noise: bool = True  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
+    common_noise: bool = COMMON_NOISE  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
     out: str | None = None  # default: next to the world model
 
     def __post_init__(self):
@@ -74,7 +75,8 @@ def main(argv: list[str]) -> None:
     check_choice("grid", cfg.grid, GRIDS)
     out = writable_dir(cfg.out if cfg.out else Path(cfg.world_model).parent)  # now, not after the episodes
     common = dict(grid=GRIDS[cfg.grid], rule=cfg.rule, alpha=cfg.alpha, seed=cfg.seed, test_seed=cfg.test_seed, write=cfg.write,
-                  device=cfg.device, num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed, common_noise=cfg.common_noise)
+                  device=cfg.device, actor_seed=cfg.actor_seed,
+                  reranking=RerankingConfig(num_candidates=cfg.num_candidates, dropout=cfg.dropout, common_noise=cfg.common_noise))
     if cfg.design == "failures":
         record = calibrate_on_failures(cfg.policy_checkpoint, cfg.world_model, failures=cfg.failures, max_episodes=cfg.max_episodes, **common)
         print(f"\nscreen (evaluation seed {cfg.seed}): the base policy {record['base_success_rate']:.1%} over {record['episodes']} episodes, "

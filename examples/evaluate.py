@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.config import config_dict, parse_config
-from torchrl_dalir.evaluation.compare import check_evaluation_settings, evaluate_checkpoints
-from torchrl_dalir.reranking.selection import SelectionConfig
+from torchrl_dalir.evaluation.compare import COMMON_NOISE, check_evaluation_settings, evaluate_checkpoints
+from torchrl_dalir.reranking import RerankingConfig, SelectionConfig
 from torchrl_dalir.utils import atomic_write, writable_dir
 
 
@@ -35,12 +35,12 @@ class Config:
     episodes: int = 50
     seed: int = 0  # the evaluation seed: episodes never overlap data-generation episodes
     device: str = "cpu"
-    num_candidates: int = 32
-    dropout: float = 0.2
+    num_candidates: int = RerankingConfig.num_candidates
+    dropout: float = RerankingConfig.dropout
     actor_seed: int = 0
     methods: list[str] | None = None  # among base, dalir, argmax, random (DALI-R's candidates chosen at random), dropout (one point-dropout candidate)
     selection: SelectionConfig | None = None  # DALI-R's rule (selection.rule=argmax ...); default: the checkpoint's
-    common_noise: bool = True  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
+    common_noise: bool = COMMON_NOISE  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
     out: str = "outputs/evaluation"
     video: int = 0  # record the first <video> episodes of each method as GIFs under <out>/videos/
 
@@ -53,8 +53,8 @@ def main(argv: list[str]) -> None:
     out = writable_dir(cfg.out)  # now, not after the episodes
     rows = evaluate_checkpoints(
         cfg.policy_checkpoint, cfg.world_model, episodes=cfg.episodes, seed=cfg.seed, device=cfg.device,
-        num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.actor_seed, methods=cfg.methods,
-        selection=cfg.selection, common_noise=cfg.common_noise, video=cfg.video, video_dir=out / "videos",
+        reranking=RerankingConfig(num_candidates=cfg.num_candidates, dropout=cfg.dropout, selection=cfg.selection, common_noise=cfg.common_noise),
+        actor_seed=cfg.actor_seed, methods=cfg.methods, video=cfg.video, video_dir=out / "videos",
     )
     print(f"\n{'method':16s} {'success':>8s} {'episodes':>9s} {'seconds':>8s}")
     for name, row in rows.items():

@@ -262,8 +262,9 @@ def test_a_damaged_checkpoint_at_the_resume_path_is_named_with_what_to_do(tmp_pa
 
 # -- settings ------------------------------------------------------------------------------------
 def _example_config(name):
-    """The ``Config`` of ``examples/<name>.py``, imported as a module (so its annotations resolve)."""
-    spec = importlib.util.spec_from_file_location(f"example_{name}", EXAMPLES / f"{name}.py")
+    """The ``Config`` of ``examples/[<tier>/]<name>.py``, imported as a module (so its annotations resolve)."""
+    (path,) = EXAMPLES.glob(f"**/{name}.py")
+    spec = importlib.util.spec_from_file_location(f"example_{name}", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
@@ -312,6 +313,15 @@ def test_negative_evaluation_seeds_are_refused_by_the_library():
         eval_episode_seed(-1, 0)
     with pytest.raises(ValueError, match="num_episodes must be at least 1, got 0"):
         evaluate(None, "reach", 0)
+
+
+@pytest.mark.parametrize("chunk_size", [0, -2])
+def test_collect_refuses_a_chunk_size_below_one_before_writing(chunk_size, tmp_path):
+    from torchrl_dalir.data import Source, collect
+
+    with pytest.raises(ValueError, match=f"chunk_size must be at least 1, got {chunk_size}"):
+        collect(SHORT_REACH, tmp_path / "reach", [Source("expert", 1)], chunk_size=chunk_size, progress=False)
+    assert not (tmp_path / "reach").exists()
 
 
 @pytest.mark.parametrize("script", ["evaluate", "calibrate_selection"])

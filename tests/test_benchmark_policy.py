@@ -1,4 +1,4 @@
-"""examples/benchmark_policy.py on a smoke policy: what its diversity numbers and its plot measure."""
+"""examples/benchmarks/benchmark_policy.py on a smoke policy: what its diversity numbers and its plot measure."""
 
 import json
 import runpy
@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "benchmark_policy.py"
+SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "benchmarks" / "benchmark_policy.py"
 
 
 def test_mean_pairwise_distance_is_the_mean_over_ordered_pairs():

@@ -9,9 +9,9 @@ from tensordict import TensorDict
 
 from torchrl_dalir.data import branched
 from torchrl_dalir.data.branched import BranchedOutcomes, collect_branched
-from torchrl_dalir.evaluation.candidate_ceiling import make_generator
 from torchrl_dalir.modules import PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.objectives.within_state_ranking import WithinStateRankingLoss
+from torchrl_dalir.reranking import RerankingConfig
 from torchrl_dalir.training.ranking import RankingTrainingConfig, train_ranking_scorer
 
 
@@ -52,9 +52,9 @@ def _policy():
 
 
 def test_branched_stage_resumes_to_identical_rows_after_a_kill(tmp_path, monkeypatch):
-    policy, generator = _policy(), make_generator("noise", 0.0)
-    settings = dict(task=SHORT_REACH, name="noise", strength=0.0, num_candidates=3, episodes=2, stride=4, seed=7, progress=False)
-    reference = collect_branched(policy, tmp_path / "whole", generator, **settings)
+    policy = _policy()
+    settings = dict(reranking=RerankingConfig(3, "clean"), task=SHORT_REACH, episodes=2, stride=4, seed=7, progress=False)
+    reference = collect_branched(policy, tmp_path / "whole", **settings)
     assert len(reference) == 2 * 3  # 80 steps: decisions 0, 4 and 8 of each episode
     assert reference.rows["action_chunk"].shape == (6, 3, 16, 4) and reference.rows["success"].shape == (6, 3)
     assert reference.rows["decision"].tolist() == [0, 4, 8, 0, 4, 8]
@@ -69,14 +69,14 @@ def test_branched_stage_resumes_to_identical_rows_after_a_kill(tmp_path, monkeyp
         memmap(rows, directory)
     monkeypatch.setattr(branched, "_memmap_atomically", killed)
     with pytest.raises(KeyboardInterrupt):
-        collect_branched(policy, tmp_path / "killed", generator, **settings)
+        collect_branched(policy, tmp_path / "killed", **settings)
     with pytest.raises(ValueError, match="unfinished"):
         BranchedOutcomes.load(tmp_path / "killed")
     monkeypatch.setattr(branched, "_memmap_atomically", memmap)
-    resumed = collect_branched(policy, tmp_path / "killed", generator, **settings)
+    resumed = collect_branched(policy, tmp_path / "killed", **settings)
     assert (resumed.rows == reference.rows).all()
     with pytest.raises(ValueError, match="another plan"):
-        collect_branched(policy, tmp_path / "killed", generator, **{**settings, "stride": 2})
+        collect_branched(policy, tmp_path / "killed", **{**settings, "stride": 2})
 
 
 def test_ranking_scorer_trains_and_reports_held_out_auc():
@@ -110,5 +110,5 @@ def test_script_collects_trains_both_variants_and_reruns_from_the_stored_data(tr
     assert json.dumps(stored["variants"]) == json.dumps(first["variants"])  # NaN AUC where no held-out decision splits
     again = main(argv)  # the stored outcomes are loaded, not collected again
     assert json.dumps(again["variants"]) == json.dumps(first["variants"])
-    with pytest.raises(ValueError, match="generator"):
+    with pytest.raises(ValueError, match="candidates"):
         main([*argv, "generator=dropuot"])

@@ -3,7 +3,6 @@
 import json
 import runpy
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,10 +13,10 @@ from torchrl_dalir import keys
 from torchrl_dalir.evaluation.candidate_ceiling import (
     candidate_ceiling,
     ceiling_episode,
-    make_generator,
     oracle_choice,
     summarize_ceiling,
 )
+from torchrl_dalir.reranking import RerankingConfig, candidate_generator
 from torchrl_dalir.reranking.branching import continue_base
 
 
@@ -46,8 +45,7 @@ class LineEnv:
 class ConstantPolicy:
     """Every action of a chunk is the condition's first entry: the clean observation gives 0 (standing still)."""
 
-    config = SimpleNamespace(horizon=16, obs_steps=2, action_steps=8, executed=slice(1, 9))
-    action_dim, task, num_points = 1, None, 4
+    horizon, obs_steps, action_steps, action_dim, task, num_points = 16, 2, 8, 1, None, 4
 
     def encode(self, cloud, agent_pos):
         return torch.zeros(cloud.shape[0], 2)
@@ -146,17 +144,15 @@ def test_set_state_replays_the_unbranched_continuation_bit_for_bit():
 
 def test_ceiling_on_the_simulator_resumes_and_reports_every_generator():
     policy = _tiny_policy()
-    generators = {name: make_generator(name, strength) for name, strength in [("dropout", 0.2), ("noise", 0.0)]}
+    generators = {name: candidate_generator(RerankingConfig(2, name)) for name in ("dropout", "clean")}
     seen = []
     records = candidate_ceiling(policy, SHORT_REACH, generators, episodes=2, num_candidates=2, done=[0],
                                 on_episode=seen.append, progress=False)
     assert [r["episode"] for r in records] == [1] and seen == records
     outcome = records[0]["generators"]
-    assert set(outcome) == {"dropout", "noise"}
+    assert set(outcome) == {"dropout", "clean"}
     if not records[0]["base_success"]:  # an untrained policy: every decision of the failed episode is branched once
         assert all(o["success"] or o["branches"] == records[0]["decisions"] for o in outcome.values())
-    with pytest.raises(ValueError, match="unknown candidate generator"):
-        make_generator("dropuot", 0.2)
     with pytest.raises(ValueError, match="num_candidates"):
         candidate_ceiling(policy, SHORT_REACH, generators, num_candidates=1)
 
@@ -180,3 +176,5 @@ def test_script_resumes_after_a_torn_line_and_summarises_the_same(trained_policy
         main([*argv[:2], "num_candidates=3", *argv[3:]])
     with pytest.raises(ValueError, match="test episodes"):
         main([*argv, "seed=0"])
+    with pytest.raises(ValueError, match="candidates"):
+        main([*argv, "generators=[dropuot]"])

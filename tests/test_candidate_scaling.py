@@ -1,4 +1,4 @@
-"""examples/candidate_scaling.py: its wiring, pairing and resumption, with a stand-in for the evaluation."""
+"""examples/paper/candidate_scaling.py: its wiring, pairing and resumption, with a stand-in for the evaluation."""
 
 import json
 import runpy
@@ -10,7 +10,7 @@ import pytest
 
 from torchrl_dalir.reranking.selection import SelectionConfig
 
-SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "candidate_scaling.py"
+SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "paper" / "candidate_scaling.py"
 OUTCOMES = {("base", 1): "0101", ("argmax", 4): "1101", ("argmax", 16): "1111", ("random", 4): "0100", ("random", 16): "0001",
             ("dalir", 4): "0111", ("dalir", 16): "0110"}
 

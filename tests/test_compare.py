@@ -76,7 +76,7 @@ def test_summarize_evaluations_pairs_every_run_against_the_base_policy(tmp_path,
 
     run("a", {"base policy": ("", [True, True, False, False]), "random candidate": ("", [True, False, False, False])})
     run("b", {"DALI-R": ("argmax(ensemble)", [False, True, True, True])})
-    script = Path(__file__).resolve().parents[1] / "examples" / "summarize_evaluations.py"
+    script = Path(__file__).resolve().parents[1] / "examples" / "paper" / "summarize_evaluations.py"
     out = tmp_path / "summary.json"
     monkeypatch.setattr(sys, "argv", ["x", f"root={tmp_path / 'screen'}", f"out={out}"])
     runpy.run_path(str(script), run_name="__main__")
@@ -112,7 +112,7 @@ def test_summarize_results_groups_seeds_by_world_model_variant(tmp_path, monkeyp
     run("fm_seed0", 0, no, no)  # the paper's world model
     run("fm_seed0_frozen+explore_fm_seed0", 0, no, [True, False, False, False])
     run("fm_seed1_frozen+explore_fm_seed1", 1, no, yes)
-    script = Path(__file__).resolve().parents[1] / "examples" / "summarize_results.py"
+    script = Path(__file__).resolve().parents[1] / "examples" / "paper" / "summarize_results.py"
     readme = tmp_path / "README.md"
     readme.write_text("# Title\n<!-- table 1 -->\n**Caption.**\n\n| stale |\n<!-- end table 1 -->\n\n<!-- trusted-selection table -->\n"
                       "**Rules.**\n\n| stale |\n\n<!-- end trusted-selection table -->\nEnd.\n")
@@ -176,7 +176,7 @@ def test_summarize_results_adds_committed_records_to_the_runs_and_pools_their_di
     save_records([{**full, "seed": 5}], tmp_path / "timed")
     assert json.loads(path.read_text()) == timed
     assert merge_records([{**full, "seed": 5}], [timed]) == [timed] and merge_records([timed], [{**full, "seed": 5}]) == [timed]
-    script = Path(__file__).resolve().parents[1] / "examples" / "summarize_results.py"
+    script = Path(__file__).resolve().parents[1] / "examples" / "paper" / "summarize_results.py"
     monkeypatch.setattr(sys, "argv", ["x", f"out={tmp_path / 'tables'}", f"records=[{folder}]", "variant=frozen+explore"])
     runpy.run_path(str(script), run_name="__main__")
     row = json.loads((tmp_path / "tables" / "summary.json").read_text())[0]

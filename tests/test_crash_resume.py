@@ -1,5 +1,6 @@
 """A crash at any point resumes to the same results (issue 15): the world-model stage, interrupted in each of its
-trainings, and the comparison that ``examples/crash_trials.py`` applies to whole kill -9 trials of the main job."""
+trainings, and the comparison that ``examples/maintainer/crash_trials.py`` applies to whole kill -9 trials of
+the main job."""
 
 import dataclasses
 import json
@@ -9,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-TRIALS = runpy.run_path(str(Path(__file__).resolve().parents[1] / "examples" / "crash_trials.py"))
+TRIALS = runpy.run_path(str(Path(__file__).resolve().parents[1] / "examples" / "maintainer" / "crash_trials.py"))
 
 
 def test_world_model_killed_in_each_of_its_trainings_resumes_to_the_same_checkpoint(

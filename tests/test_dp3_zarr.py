@@ -161,7 +161,7 @@ def test_the_action_ablated_world_model_ignores_the_chunk():
 
 
 def test_table4_smoke_writes_the_table(tmp_path, monkeypatch):
-    script = Path(__file__).resolve().parents[1] / "examples" / "table4_real_world.py"
+    script = Path(__file__).resolve().parents[1] / "examples" / "paper" / "table4_real_world.py"
     args = ["preset=smoke", "made=true", f"out={tmp_path}"]
     monkeypatch.setattr(sys, "argv", ["x", *args])
     example = runpy.run_path(str(script), run_name="__main__")
@@ -169,7 +169,7 @@ def test_table4_smoke_writes_the_table(tmp_path, monkeypatch):
     assert (
         result["data"] == example["MADE_DATA"] == "made store (synthetic, DP3 layout)" and "synthetic" in result["note"]
     )
-    assert result["command"] == " ".join(["python examples/table4_real_world.py", *args])
+    assert result["command"] == " ".join(["python examples/paper/table4_real_world.py", *args])
     assert [row["task"] for row in result["table"]] == ["made-0"]
     row, run = result["table"][0], result["runs"][0]
     assert set(row) == {"task", "with_action", "without_action", "no_change"} and all(

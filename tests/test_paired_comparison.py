@@ -1,4 +1,4 @@
-"""examples/paired_comparison.py: two methods on the same test episodes of named runs."""
+"""examples/paper/paired_comparison.py: two methods on the same test episodes of named runs."""
 
 import json
 import runpy
@@ -8,7 +8,7 @@ import pytest
 
 from torchrl_dalir.pipeline.records import save_records
 
-SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "paired_comparison.py"
+SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "paper" / "paired_comparison.py"
 
 
 def record(task, seed, methods):

@@ -23,7 +23,7 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     quiet = ["collection.progress=false", "policy_training.progress=false", "world_model.progress=false"]
     args = ["preset=smoke", "task=reach", f"policy={policy}", f"out={tmp_path}", *quiet]
     # the first run goes through the sweep: a separate process per task and seed
-    run_example("sweep.py", ["tasks=[reach]", "seeds=[0]", f"policy={policy}", "preset=smoke", f"out={tmp_path}", "jobs=1",
+    run_example("paper/sweep.py", ["tasks=[reach]", "seeds=[0]", f"policy={policy}", "preset=smoke", f"out={tmp_path}", "jobs=1",
                              f"threads={torch.get_num_threads()}", f"overrides=[{','.join(quiet)}]"], monkeypatch)
     sweep = json.loads((tmp_path / "sweep.json").read_text())["runs"]
     assert [(r["task"], r["seed"], r["exit_code"]) for r in sweep] == [("reach", 0, 0)]
@@ -62,15 +62,15 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     assert (tmp_path / "evaluation" / "evaluation.csv").read_text().count("\n") == 1 + 4
     # the candidates' imagined against their real outcomes, on the same checkpoints
     diagnosis = tmp_path / "candidate_outcomes"
-    run_example("diagnose_reranking.py", [f"policy_checkpoint={policy_path}", f"world_model={world_model_path}", "episodes=1", "decisions=2",
+    run_example("paper/diagnose_reranking.py", [f"policy_checkpoint={policy_path}", f"world_model={world_model_path}", "episodes=1", "decisions=2",
                                           "num_candidates=4", f"out={diagnosis}"], monkeypatch)
     outcomes = json.loads((diagnosis / "candidate_outcomes.json").read_text())
     assert outcomes["summary"]["decisions"] == 2 and [len(r["real_score"]) for r in outcomes["records"]] == [4, 4]
     assert (diagnosis / "candidate_outcomes.png").stat().st_size > 0
     with pytest.raises(FileNotFoundError, match="no policy checkpoint at"):
-        run_example("diagnose_reranking.py", [f"policy_checkpoint={tmp_path / 'missing.pt'}", f"world_model={world_model_path}"], monkeypatch)
+        run_example("paper/diagnose_reranking.py", [f"policy_checkpoint={tmp_path / 'missing.pt'}", f"world_model={world_model_path}"], monkeypatch)
     records = tmp_path / "records"  # the sweep's summary, again, keeping the run's record
-    run_example("summarize_results.py", [f"out={tmp_path}", f"save_records={records}"], monkeypatch)
+    run_example("paper/summarize_results.py", [f"out={tmp_path}", f"save_records={records}"], monkeypatch)
     record = json.loads((records / "paper" / "reach" / f"{policy}_seed0.json").read_text())
     assert record["methods"]["dalir"]["outcomes"] == "".join("1" if r["success"] else "0" for r in data["success"]["DALI-R"]["records"])
     assert record["validation"]["chosen"] == calibration["chosen"] and record["commit"] == data["commit"]
@@ -93,7 +93,7 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
     assert json.loads(json.dumps(config_dict(again))) == data["config"]  # (JSON holds tuples as lists)
     # the record alone (the run folder gone) gives the same summary
     alone = tmp_path / "from_records"
-    run_example("summarize_results.py", [f"out={alone}", f"records=[{records}]"], monkeypatch)
+    run_example("paper/summarize_results.py", [f"out={alone}", f"records=[{records}]"], monkeypatch)
     assert json.loads((alone / "summary.json").read_text()) == json.loads((tmp_path / "summary.json").read_text())
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert [(r["task"], r["policy"], r["seeds"]) for r in summary] == [("reach", policy, [0])]
@@ -138,7 +138,7 @@ def test_main_job_smoke_runs_every_stage_and_skips_them_next_time(tmp_path, monk
 
 def test_sweep_refuses_unknown_tasks_before_running_anything(tmp_path, monkeypatch):
     with pytest.raises(KeyError, match="unknown task 'shelf_place'"):
-        run_example("sweep.py", ["tasks=[shelf_place]", f"out={tmp_path}"], monkeypatch)
+        run_example("paper/sweep.py", ["tasks=[shelf_place]", f"out={tmp_path}"], monkeypatch)
     assert not (tmp_path / "logs").exists()
 
 
@@ -243,6 +243,7 @@ def test_main_job_calibration_design_failures_calls_calibrate_on_failures(tmp_pa
     from torchrl_dalir.config import parse_config
     from torchrl_dalir.evaluation import calibration
     from torchrl_dalir.pipeline import PRESETS, PipelineConfig, run
+    from torchrl_dalir.reranking import RerankingConfig
 
     calls = []
 
@@ -253,8 +254,9 @@ def test_main_job_calibration_design_failures_calls_calibrate_on_failures(tmp_pa
     monkeypatch.setattr(run, "calibrate_on_failures", fake)
     cfg = parse_config(PipelineConfig, ["preset=cpu", "seed=2", "calibration_design=failures", "calibration_failures=7", "calibration_grid=all", f"out={tmp_path}"], PRESETS)
     run.calibrate_and_record(cfg, tmp_path / "p.pt", tmp_path / "w.pt", tmp_path / "calibration.json")
+    reranking = RerankingConfig(num_candidates=32, dropout=0.2, common_noise=True)  # the evaluations' common noise
     assert calls == [{"failures": 7, "grid": calibration.GRIDS["all"], "alpha": calibration.ALPHA, "seed": 1, "test_seed": 0, "device": "cpu",
-                      "num_candidates": 32, "dropout": 0.2, "actor_seed": 2}]
+                      "reranking": reranking, "actor_seed": 2}]
     assert json.loads((tmp_path / "calibration.json").read_text())["episodes"] == 40
     with pytest.raises(ValueError, match="calibration_design must be one of"):
         parse_config(PipelineConfig, ["calibration_design=adaptive"], PRESETS)

@@ -15,7 +15,7 @@ from torchrl_dalir.data import Source, collect
 from torchrl_dalir.data.config import PRESETS, CollectionConfig
 
 RAY_CPUS = 2  # a local Ray instance: one CPU per collector actor
-SWEEP = Path(__file__).resolve().parents[1] / "examples" / "sweep.py"
+SWEEP = Path(__file__).resolve().parents[1] / "examples" / "paper" / "sweep.py"
 
 
 @pytest.fixture(scope="module")

@@ -147,7 +147,7 @@ def test_table2_script_evaluates_every_source_on_the_same_episodes(tmp_path, mon
 
     monkeypatch.setattr(compare, "evaluate_checkpoints", fake_evaluate)
     monkeypatch.setattr(checkpoints, "load_policy", lambda path, device: SimpleNamespace(task=Path(path).stem))
-    script = Path(__file__).resolve().parents[1] / "examples" / "table2_candidates.py"
+    script = Path(__file__).resolve().parents[1] / "examples" / "paper" / "table2_candidates.py"
     args = ["policies=[stick-pull.pt,reach.pt]", "world_models=[a.pt,b.pt]", "search.iterations=2", "episodes=3", f"out={tmp_path}"]
     monkeypatch.setattr(sys, "argv", ["x", *args])
     runpy.run_path(str(script), run_name="__main__")

@@ -11,7 +11,7 @@ from torchrl_dalir.config import parse_config
 from torchrl_dalir.evaluation.compare import ARGMAX, BASE
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
 
-SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "table3_diagnostics.py"
+SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "paper" / "table3_diagnostics.py"
 
 
 @pytest.fixture

@@ -12,17 +12,29 @@ from torchrl_dalir.envs import TASKS, get_task, make_env  # noqa: E402
 __version__ = "0.2.0"
 
 from torchrl_dalir.modules import DiffusionPolicy3D, FlowMatchingPolicy3D, LatentWorldModel, TaskCompletionScorer  # noqa: E402
+from torchrl_dalir.modules.policy_interface import ChunkPolicy  # noqa: E402
 from torchrl_dalir.modules.receding_horizon import receding_horizon  # noqa: E402
-from torchrl_dalir.reranking import GaussianObservationNoise, PointDropout, RerankingActor  # noqa: E402
+from torchrl_dalir.reranking import (  # noqa: E402
+    GaussianObservationNoise,
+    PointDropout,
+    RerankingActor,
+    RerankingConfig,
+    SearchConfig,
+    SelectionConfig,
+)
 
 __all__ = [
     "TASKS",
+    "ChunkPolicy",
     "DiffusionPolicy3D",
     "FlowMatchingPolicy3D",
     "GaussianObservationNoise",
     "LatentWorldModel",
     "PointDropout",
     "RerankingActor",
+    "RerankingConfig",
+    "SearchConfig",
+    "SelectionConfig",
     "TaskCompletionScorer",
     "__version__",
     "get_task",

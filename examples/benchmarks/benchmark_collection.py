@@ -1,7 +1,8 @@
 """Collection throughput with point clouds, per backend and worker count.
 
-    python examples/benchmark_collection.py task=disassemble trajectories=40 workers=[1,2]
-    python examples/benchmark_collection.py task=disassemble trajectories=40 workers=[1,2] backends=[local,ray]
+    python examples/benchmarks/benchmark_collection.py task=disassemble trajectories=40 workers=[1,2]
+    python examples/benchmarks/benchmark_collection.py task=disassemble trajectories=40 \\
+        workers=[1,2] backends=[local,ray]
 
 Collects the same noisy-expert trajectories once per backend and worker count into a scratch
 directory (the same rows every time) and prints env steps per second: kept trajectories' steps over

@@ -1,7 +1,7 @@
 """Peak memory and page faults of the world-model stage's encoder pass (``encode_rows``).
 
-    python examples/benchmark_encoder_memory.py                       # under the malloc tunables (the default)
-    DALIR_MALLOC=system python examples/benchmark_encoder_memory.py   # glibc's malloc defaults
+    python examples/benchmarks/benchmark_encoder_memory.py  # under the malloc tunables (the default)
+    DALIR_MALLOC=system python examples/benchmarks/benchmark_encoder_memory.py   # glibc's malloc defaults
 
 The latent encoder of a ``cpu``-preset policy (untrained: memory depends on sizes, not values)
 encodes ``rows`` random 512-point observations ``passes`` times, keeping every pass's latents as

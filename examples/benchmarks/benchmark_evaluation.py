@@ -1,6 +1,7 @@
 """Evaluation time with point clouds rendered at every step against only where decisions read them.
 
-    python examples/benchmark_evaluation.py policy_checkpoint=<policy.pt> world_model=<world_model.pt> episodes=5
+    python examples/benchmarks/benchmark_evaluation.py policy_checkpoint=<policy.pt> \\
+        world_model=<world_model.pt> episodes=5
 
 Runs the base policy (and DALI-R, given a world model) on the same ``episodes`` validation
 episodes twice: with the env rendering a cloud at every step (``decision_period=1``) and with the
@@ -25,6 +26,7 @@ from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.evaluation import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
+from torchrl_dalir.reranking import RerankingConfig
 from torchrl_dalir.utils import atomic_write
 
 
@@ -34,7 +36,7 @@ class Config:
     world_model: str = ""  # "" times the base policy only
     episodes: int = 5
     seed: int = 1  # validation episodes: timing reads no test episode
-    num_candidates: int = 32
+    num_candidates: int = RerankingConfig.num_candidates
     threads: int = 1
     out: str = "outputs/benchmarks"
 

@@ -1,7 +1,8 @@
 """Milliseconds per decision of the base policies alone and with DALI-R (the paper's Table 5).
 
-    python examples/benchmark_latency.py preset=cpu candidates=[1,4,8,16,32]
-    python examples/benchmark_latency.py kinds=[fm] candidates=[32] precisions=[fp32,bf16]   # bf16 autocast at inference
+    python examples/benchmarks/benchmark_latency.py preset=cpu candidates=[1,4,8,16,32]
+    python examples/benchmarks/benchmark_latency.py kinds=[fm] candidates=[32] \\
+        precisions=[fp32,bf16]  # bf16 autocast at inference
 
 Builds FM and DP policies and a latent world model and scorer with the ``preset``'s
 architectures (untrained: latency does not depend on the weights), then times full decisions

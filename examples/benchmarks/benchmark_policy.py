@@ -1,6 +1,7 @@
 """Inference latency and candidate diversity of trained base policies.
 
-    python examples/benchmark_policy.py checkpoints=[outputs/policies/disassemble/fm_seed0/checkpoint.pt] nfe=[1,10]
+    python examples/benchmarks/benchmark_policy.py \\
+        checkpoints=[outputs/policies/disassemble/fm_seed0/checkpoint.pt] nfe=[1,10]
 
 Latency: milliseconds per decision (median of ``repeats`` after ``warmup``), batch 1 and a batch
 of ``candidates`` chunks from one observation, split into the encoder (per-point MLP, pooling,
@@ -29,6 +30,7 @@ from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.evaluation.plots import plot_candidate_spread
 from torchrl_dalir.evaluation.timing import median_ms
+from torchrl_dalir.reranking import RerankingConfig
 from torchrl_dalir.utils import atomic_write
 
 
@@ -37,9 +39,9 @@ class Config:
     checkpoints: list[str] = field(default_factory=list)
     data: str = "outputs/data"  # a demo observation comes from <data>/<task>/demos
     nfe: list[int] = field(default_factory=lambda: [1, 10])  # FM Euler steps to time (DP keeps its DDIM steps)
-    candidates: int = 32
+    candidates: int = RerankingConfig.num_candidates
     observations: int = 8  # demo observations the diversity is averaged over
-    dropout: float = 0.2
+    dropout: float = RerankingConfig.dropout
     warmup: int = 5
     repeats: int = 30
     threads: int = 2

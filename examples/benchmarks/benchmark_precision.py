@@ -1,7 +1,7 @@
 """A base-policy training step in fp32 and under bf16 autocast, side by side, and what ``precision=auto`` picks.
 
-    python examples/benchmark_precision.py                 # cpu-preset FM policy, batch 64 x 2 x 512 points
-    python examples/benchmark_precision.py threads=1 repeats=20
+    python examples/benchmarks/benchmark_precision.py                 # cpu-preset FM policy, batch 64 x 2 x 512 points
+    python examples/benchmarks/benchmark_precision.py threads=1 repeats=20
 
 Forward + backward + AdamW step on random inputs of the ``cpu`` preset's sizes, the two
 precisions interleaved (so a busy machine slows both alike); prints the median seconds per step

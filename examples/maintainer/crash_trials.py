@@ -1,8 +1,10 @@
 """Kill -9 trials of the main job: a run killed at any point and resumed must give the same results.
 
-    python examples/crash_trials.py preset=smoke out=outputs/crash_trials          # reach: a kill in each of the 7 stages
-    python examples/crash_trials.py preset=smoke seed=1 trials=2 reuse_reference=true   # 14 more kills, same reference
-    python examples/crash_trials.py trials=7 job=[preset=cpu]                      # the cpu preset, one kill per run: hours
+    python examples/maintainer/crash_trials.py preset=smoke out=outputs/crash_trials \\
+          # reach: a kill in each of the 7 stages
+    python examples/maintainer/crash_trials.py preset=smoke seed=1 trials=2 reuse_reference=true \\
+          # 14 more kills, same reference
+    python examples/maintainer/crash_trials.py trials=7 job=[preset=cpu]  # the cpu preset, one kill per run: hours
 
 Runs ``examples/train_dp3_wm.py`` once uninterrupted (``<out>/reference``), then ``trials`` times
 (``<out>/trial_<i>``): each trial's run is killed with SIGKILL (its whole process group, collector
@@ -40,7 +42,7 @@ from torchrl_dalir.config import check_at_least, config_dict, parse_config
 from torchrl_dalir.data import TrajectoryDataset
 from torchrl_dalir.utils import atomic_write
 
-JOB = Path(__file__).resolve().parent / "train_dp3_wm.py"
+JOB = Path(__file__).resolve().parents[1] / "train_dp3_wm.py"  # examples/train_dp3_wm.py
 # the main job's line when a stage has run to its end (with its seconds), or was found done before
 STAGE_LINE = re.compile(r"^\[(\w+)\] (?:(\d+) s -> |done before: )", re.MULTILINE)
 IGNORED = {"seconds"}  # wall times: the only entries that may differ between identical runs

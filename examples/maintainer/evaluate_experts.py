@@ -1,7 +1,7 @@
 """Success rates and speed of the experts and their drift-noise versions (state-only envs, no
 rendering; the speed is wall-clock env steps per second, the env included).
 
-    python examples/evaluate_experts.py tasks=[disassemble,shelf-place] noise_scales=[0,0.1] episodes=50
+    python examples/maintainer/evaluate_experts.py tasks=[disassemble,shelf-place] noise_scales=[0,0.1] episodes=50
 
 Writes ``<out>/experts.json`` and prints a table; the noise levels shipped in the collection
 presets were chosen from this table so that the mixed data holds successes and failures.

@@ -1,6 +1,6 @@
 """Trains the Adroit Pen expert with TorchRL's PPO and writes ``torchrl_dalir/experts/weights/pen_expert.pt``.
 
-    OMP_NUM_THREADS=1 python examples/train_pen_expert.py seed=0
+    OMP_NUM_THREADS=1 python examples/maintainer/train_pen_expert.py seed=0
 
 Training matches our evaluation protocol: an episode terminates at its first success and earns a
 success bonus, so PPO maximises the any-step success rate instead of learning to hover. The

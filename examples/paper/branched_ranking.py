@@ -24,7 +24,7 @@ import torch
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_choice, parse_config
 from torchrl_dalir.data.branched import collect_branched
-from torchrl_dalir.evaluation.candidate_ceiling import GENERATORS, make_generator
+from torchrl_dalir.reranking import RerankingConfig
 from torchrl_dalir.training.ranking import RankingTrainingConfig, train_ranking_scorer
 from torchrl_dalir.utils import atomic_write, git_commit
 
@@ -34,8 +34,9 @@ VARIANTS = {"ranking": {"ranking": True}, "outcome": {"ranking": False}}
 @dataclass
 class Config:
     policy: str = ""  # a policy checkpoint, .../<task>/<policy>_seed<seed>/checkpoint.pt
-    generator: str = "dropout"
-    strength: float = 0.2  # dropout probability, or noise std for observation_noise
+    generator: str = "dropout"  # or clean (re-sampling the policy's noise) or noise (Gaussian point noise)
+    dropout: float = RerankingConfig.dropout
+    noise_std: float = RerankingConfig.noise_std
     num_candidates: int = 8
     episodes: int = 30
     stride: int = 2
@@ -49,9 +50,12 @@ class Config:
     def __post_init__(self):
         if not Path(self.policy).is_file():
             raise FileNotFoundError(f"no policy checkpoint at {self.policy!r}: pass policy=<checkpoint.pt>")
-        check_choice("generator", self.generator, GENERATORS)
+        self.reranking()  # an unknown generator fails here
         for variant in self.variants:
             check_choice("variants entry", variant, VARIANTS)
+
+    def reranking(self) -> RerankingConfig:
+        return RerankingConfig(self.num_candidates, self.generator, self.dropout, self.noise_std)
 
 
 def main(argv: list[str]) -> dict:
@@ -59,8 +63,7 @@ def main(argv: list[str]) -> dict:
     policy = load_policy(cfg.policy)
     run = Path(cfg.policy).parent.name
     start = time.perf_counter()
-    outcomes = collect_branched(policy, Path(cfg.out) / policy.task / run / cfg.generator, make_generator(cfg.generator, cfg.strength),
-                                name=cfg.generator, strength=cfg.strength, num_candidates=cfg.num_candidates,
+    outcomes = collect_branched(policy, Path(cfg.out) / policy.task / run / cfg.generator, cfg.reranking(),
                                 episodes=cfg.episodes, stride=cfg.stride, seed=cfg.data_seed, progress=cfg.progress)
     collection_seconds = time.perf_counter() - start
     split = outcomes.split_decisions()

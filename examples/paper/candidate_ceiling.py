@@ -2,7 +2,7 @@
 branch succeeded in the simulator, per candidate generator, on validation episodes.
 
     python examples/paper/candidate_ceiling.py policies=[outputs/pipeline/policies/shelf-place/fm_seed0/checkpoint.pt]
-    python examples/paper/candidate_ceiling.py policies=[...] generators=[dropout,noise] num_candidates=8 episodes=20 \\
+    python examples/paper/candidate_ceiling.py policies=[...] generators=[dropout,clean] num_candidates=8 episodes=20 \\
         json=docs/results/candidate_ceiling.json
 
 A measurement, never a method (:mod:`torchrl_dalir.evaluation.candidate_ceiling`): it says how
@@ -23,7 +23,8 @@ import torch
 
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
-from torchrl_dalir.evaluation.candidate_ceiling import candidate_ceiling, make_generator, summarize_ceiling
+from torchrl_dalir.evaluation.candidate_ceiling import candidate_ceiling, summarize_ceiling
+from torchrl_dalir.reranking import RerankingConfig, candidate_generator
 from torchrl_dalir.utils import atomic_write, git_commit
 
 TEST_SEED = 0  # the main job's test episodes: never measured here
@@ -32,9 +33,10 @@ TEST_SEED = 0  # the main job's test episodes: never measured here
 @dataclass
 class Config:
     policies: list[str] = field(default_factory=list)  # policy checkpoints, .../<task>/<policy>_seed<seed>/checkpoint.pt
-    generators: list[str] = field(default_factory=lambda: ["dropout", "noise"])
-    dropout: float = 0.2  # point dropout's probability (the paper's)
-    observation_noise: float = 0.01  # the Gaussian jitter's std, in metres
+    # point dropout (the paper's), re-sampling the policy's noise from the clean observation, or Gaussian point noise
+    generators: list[str] = field(default_factory=lambda: ["dropout", "clean"])
+    dropout: float = RerankingConfig.dropout  # point dropout's probability
+    noise_std: float = RerankingConfig.noise_std  # the Gaussian noise's std, in metres
     num_candidates: int = 8  # per decision, the clean one included
     episodes: int = 20
     seed: int = 1  # evaluation seed of the validation episodes
@@ -48,7 +50,7 @@ class Config:
         if not self.policies:
             raise ValueError("name the policies: policies=[<checkpoint.pt>, ...]")
         for name in self.generators:
-            make_generator(name, 0.0)  # an unknown name fails here, before any episode
+            self.reranking(name)  # an unknown name fails here, before any episode
         if self.seed == TEST_SEED:
             raise ValueError(f"seed={TEST_SEED} holds the test episodes; measure the ceiling on validation episodes (seed=1)")
         check_at_least("num_candidates", self.num_candidates, 2)
@@ -57,8 +59,11 @@ class Config:
             if not Path(path).is_file():
                 raise FileNotFoundError(f"no policy checkpoint at {path}")
 
+    def reranking(self, generator: str) -> RerankingConfig:
+        return RerankingConfig(self.num_candidates, generator, self.dropout, self.noise_std)
+
     def strength(self, generator: str) -> float:
-        return {"dropout": self.dropout, "observation_noise": self.observation_noise}.get(generator, 0.0)
+        return {"dropout": self.dropout, "noise": self.noise_std}.get(generator, 0.0)
 
     def settings(self) -> dict:
         """What an episode's outcome depends on, besides the policy: a resumed file must match it."""
@@ -99,7 +104,7 @@ def measure(cfg: Config, checkpoint: str) -> dict:
         with path.open("a") as file:
             file.write(json.dumps(record) + "\n")
 
-    generators = {g: make_generator(g, cfg.strength(g)) for g in cfg.generators}
+    generators = {g: candidate_generator(cfg.reranking(g)) for g in cfg.generators}
     episodes += candidate_ceiling(policy, policy.task, generators, episodes=cfg.episodes, seed=cfg.seed,
                                   num_candidates=cfg.num_candidates, exhaustive=cfg.exhaustive,
                                   done=[r["episode"] for r in episodes], on_episode=append, progress=cfg.progress,

@@ -1,8 +1,9 @@
 """Paper Figure 3(b): DALI-R's success as the number of candidates grows.
 
-    python examples/candidate_scaling.py policies=[<run>/policies/disassemble/dp_seed0/checkpoint.pt] \\
+    python examples/paper/candidate_scaling.py policies=[<run>/policies/disassemble/dp_seed0/checkpoint.pt] \\
         world_models=[<run>/world_models/dp/disassemble/seed0_frozen+explore_dp_seed0/world_model.pt]
-    python examples/candidate_scaling.py policies=[a.pt,b.pt] world_models=[a_wm.pt,b_wm.pt] candidates=[2,4,8,16,32,64] methods=[argmax,random]
+    python examples/paper/candidate_scaling.py policies=[a.pt,b.pt] world_models=[a_wm.pt,b_wm.pt] \\
+        candidates=[2,4,8,16,32,64] methods=[argmax,random]
 
 Every (policy, world model) pair (one task and seed each) runs the base policy once and, for each
 candidate count N in ``candidates``, each reranking method (``argmax``: the paper's arg-max of the
@@ -27,6 +28,7 @@ from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.checkpoints import load_policy, load_world_model
 from torchrl_dalir.config import check_at_least, check_choice, config_dict, parse_config
 from torchrl_dalir.evaluation.compare import (
+    COMMON_NOISE,
     METHODS,
     RERANKING,
     check_evaluation_settings,
@@ -36,7 +38,7 @@ from torchrl_dalir.evaluation.compare import (
 )
 from torchrl_dalir.evaluation.plots import plot_candidate_scaling
 from torchrl_dalir.pipeline.records import outcome_string, successes
-from torchrl_dalir.reranking.selection import SelectionConfig
+from torchrl_dalir.reranking import RerankingConfig, SelectionConfig
 from torchrl_dalir.utils import atomic_write, measured_once, writable_dir
 
 BASE_INPUTS = ("episodes", "seed", "device", "actor_seed")  # what the base policy's row depends on, besides the policy
@@ -51,9 +53,9 @@ class Config:
     episodes: int = 50
     seed: int = 0  # the evaluation seed: episodes never overlap data-generation episodes
     device: str = "cpu"
-    dropout: float = 0.2  # point-dropout probability of every candidate but the clean one
+    dropout: float = RerankingConfig.dropout  # point-dropout probability of every candidate but the clean one
     actor_seed: int = 0
-    common_noise: bool = True  # the clean candidate draws the base policy's own noise: N = 1 replays the base policy
+    common_noise: bool = COMMON_NOISE  # the clean candidate draws the base policy's own noise: N = 1 replays the base policy
     out: str = "outputs/candidate_scaling"
 
     def __post_init__(self):

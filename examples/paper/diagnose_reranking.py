@@ -1,7 +1,8 @@
 """Does DALI-R's imagination order its candidates the way the simulator does?
 
-    python examples/diagnose_reranking.py policy_checkpoint=.../checkpoint.pt world_model=.../world_model.pt
-    python examples/diagnose_reranking.py policy_checkpoint=... world_model=... follow_through=true decisions=25 stride=5
+    python examples/paper/diagnose_reranking.py policy_checkpoint=.../checkpoint.pt world_model=.../world_model.pt
+    python examples/paper/diagnose_reranking.py policy_checkpoint=... world_model=... \\
+        follow_through=true decisions=25 stride=5
 
 At the first ``decisions`` decisions of ``episodes`` evaluation episodes (along the base policy),
 runs every candidate's executed actions in the simulator from the same state and compares the
@@ -28,8 +29,7 @@ from torchrl_dalir.evaluation.calibration import VALIDATION_SEED
 from torchrl_dalir.evaluation.candidate_outcomes import candidate_outcomes, summarize_candidate_outcomes
 from torchrl_dalir.evaluation.compare import check_evaluation_settings
 from torchrl_dalir.evaluation.plots import plot_candidate_outcomes
-from torchrl_dalir.reranking import PointDropout
-from torchrl_dalir.reranking.selection import SelectionConfig
+from torchrl_dalir.reranking import RerankingConfig, SelectionConfig
 from torchrl_dalir.utils import atomic_write, writable_dir
 
 
@@ -42,8 +42,8 @@ class Config:
     stride: int = 1  # analyse every stride-th of them (the others just follow the base policy)
     follow_through: bool = False  # continue every candidate with the base policy to the episode's end
     seed: int = VALIDATION_SEED  # the evaluation seed (episodes as in examples/evaluate.py); not the test episodes' 0
-    num_candidates: int = 32
-    dropout: float = 0.2
+    num_candidates: int = RerankingConfig.num_candidates
+    dropout: float = RerankingConfig.dropout
     actor_seed: int = 0
     device: str = "cpu"
     out: str = "outputs/candidate_outcomes"
@@ -58,10 +58,9 @@ def main(argv: list[str]) -> dict:
     cfg: Config = parse_config(Config, argv)
     out = writable_dir(cfg.out)  # now, not after the episodes
     torch.manual_seed(cfg.actor_seed)
-    actor = RerankingActor.from_checkpoints(
-        cfg.policy_checkpoint, cfg.world_model, cfg.device, num_candidates=cfg.num_candidates, candidates=PointDropout(cfg.dropout), seed=cfg.actor_seed,
-        selection=SelectionConfig(),  # imagined and real outcomes rated by the same (state) scorer; "chosen" is its arg-max
-    )
+    # imagined and real outcomes rated by the same (state) scorer; "chosen" is its arg-max
+    reranking = RerankingConfig(num_candidates=cfg.num_candidates, dropout=cfg.dropout, selection=SelectionConfig())
+    actor = RerankingActor.from_checkpoints(cfg.policy_checkpoint, cfg.world_model, cfg.device, config=reranking, seed=cfg.actor_seed)
     task = actor.policy.task
     records = candidate_outcomes(
         actor, task, episodes=cfg.episodes, decisions=cfg.decisions, stride=cfg.stride, follow_through=cfg.follow_through, seed=cfg.seed

@@ -1,7 +1,7 @@
 """Two methods on the same test episodes of chosen runs: per run and pooled, with the sign test.
 
-    python examples/paired_comparison.py runs=[dp/stick-pull/1,dp/stick-pull/2] method=random against=base
-    python examples/paired_comparison.py runs=[dp/stick-pull/2] method=dropout \\
+    python examples/paper/paired_comparison.py runs=[dp/stick-pull/1,dp/stick-pull/2] method=random against=base
+    python examples/paper/paired_comparison.py runs=[dp/stick-pull/2] method=dropout \\
         evaluations=[outputs/evaluation/evaluation.json] json=docs/results/<name>.json
 
 Reads the committed run records (``records``, :mod:`torchrl_dalir.pipeline.records`) of ``runs``
@@ -124,7 +124,8 @@ def main(argv: list[str]) -> None:
     result = compare(cfg)
     print(markdown(result))
     if cfg.json:
-        atomic_write(Path(cfg.json), json.dumps({"command": "python examples/paired_comparison.py " + " ".join(argv), **result}, indent=1) + "\n")
+        command = "python examples/paper/paired_comparison.py " + " ".join(argv)
+        atomic_write(Path(cfg.json), json.dumps({"command": command, **result}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """One point cloud per task, saved as a PNG, to check camera and crop box by eye.
 
-    python examples/plot_point_clouds.py tasks=[door,pen,disassemble] out=docs/point_clouds
+    python examples/paper/plot_point_clouds.py tasks=[door,pen,disassemble] out=docs/point_clouds
 
 MetaWorld clouds are taken after ``steps`` expert steps (gripper near the object); Adroit
 clouds at the first step (no expert yet).

@@ -1,7 +1,7 @@
 """Gathers ``examples/evaluate.py`` runs into one table: every method of every run, per task,
 paired against the base policy on the same episodes.
 
-    python examples/summarize_evaluations.py root=outputs/screen out=docs/results/screen.json
+    python examples/paper/summarize_evaluations.py root=outputs/screen out=docs/results/screen.json
 
 Reads ``<root>/<task>/<run>/evaluation.json`` (one folder per task, one per evaluation run; a
 run's name says what it varied, e.g. ``frozen_argmax``). In each task, the base policy's episodes
@@ -66,7 +66,7 @@ def main(argv: list[str]) -> None:
     table = "\n".join(lines)
     print(table)
     out = Path(cfg.out)
-    command = " ".join(["python examples/summarize_evaluations.py", *argv])
+    command = " ".join(["python examples/paper/summarize_evaluations.py", *argv])
     atomic_write(out, json.dumps({"command": command, "runs": {t: sorted(e["methods"]) for t, e in tasks.items()}, "tasks": tasks}, indent=1))
     atomic_write(out.with_suffix(".md"), table + "\n")
 

@@ -1,10 +1,10 @@
 """Gathers the main job's results over tasks and seeds into tables and plots.
 
-    python examples/summarize_results.py out=outputs/pipeline
-    python examples/summarize_results.py out=outputs/pipeline trusted_json=docs/results/trusted_selection.json
-    python examples/summarize_results.py out=outputs/pipeline save_records=docs/results/runs    # keep the runs' records
-    python examples/summarize_results.py out=outputs/tables records=[docs/results/runs] variant=frozen+explore
-    python examples/summarize_results.py ... table1_json=docs/results/table1.json readme=README.md   # and the README's tables
+    python examples/paper/summarize_results.py out=outputs/pipeline
+    python examples/paper/summarize_results.py out=outputs/pipeline trusted_json=docs/results/trusted_selection.json
+    python examples/paper/summarize_results.py out=outputs/pipeline save_records=docs/results/runs  # keep the records
+    python examples/paper/summarize_results.py out=outputs/tables records=[docs/results/runs] variant=frozen+explore
+    python examples/paper/summarize_results.py ... table1_json=docs/results/table1.json readme=README.md  # + tables
 
 Reads every run of the main job under ``out`` (``<out>/results/<task>/<run>/results.json`` and its
 calibration) and the committed run records under ``records`` (:mod:`torchrl_dalir.pipeline.records`:
@@ -27,7 +27,9 @@ Runs that logged their stages (``<out>/stages/``, kept in their records) also gi
 ``table1_json`` builds the paper's Table 1 (markdown, JSON and a bar plot per backbone, the plots
 also next to the JSON); ``readme`` rewrites the tables between the file's ``<!-- table 1 -->`` /
 ``<!-- trusted-selection table -->`` markers and their ``<!-- end ... -->``, keeping each region's
-first paragraph (its caption, written by hand).
+first paragraph (its caption, written by hand); a table whose marker the file does not hold is left
+out of it. ``examples/maintainer/update_readme_tables.py`` rebuilds the committed tables from the run
+records and rewrites them in ``README.md`` and ``docs/results/README.md``.
 """
 
 from __future__ import annotations
@@ -342,9 +344,11 @@ def main(argv: list[str]) -> None:
         readme = Path(cfg.readme)
         text = readme.read_text(encoding="utf-8")
         for marker in ("table 1", "trusted-selection table"):
-            if marker in generated:
+            if marker in generated and f"<!-- {marker} -->" in text:
                 text = replace_region(text, marker, generated[marker])
                 print(f"{readme}: the {marker} rewritten")
+            elif marker in generated:
+                print(f"{readme}: holds no <!-- {marker} --> marker, so the {marker} is not written there")
             elif f"<!-- {marker} -->" in text:
                 print(f"{readme}: the {marker} left as it was (not built by this command)")
         atomic_write(readme, text)

@@ -1,8 +1,8 @@
 """The main job over tasks and seeds, then the summary table: the benchmark protocol in one command.
 
-    python examples/sweep.py out=outputs/pipeline                       # 4 MetaWorld tasks x 3 seeds, FM
-    python examples/sweep.py tasks=[shelf-place] seeds=[1,2] policy=dp jobs=1 threads=2
-    python examples/sweep.py launcher=ray ray_address=auto threads=2 out=/shared/pipeline   # on a Ray cluster
+    python examples/paper/sweep.py out=outputs/pipeline                       # 4 MetaWorld tasks x 3 seeds, FM
+    python examples/paper/sweep.py tasks=[shelf-place] seeds=[1,2] policy=dp jobs=1 threads=2
+    python examples/paper/sweep.py launcher=ray ray_address=auto threads=2 out=/shared/pipeline   # on a Ray cluster
 
 Every run is its own ``examples/train_dp3_wm.py`` process, so a run that crashes does not stop
 the others, and a stopped sweep resumes where it was (finished stages are skipped). Runs go
@@ -32,7 +32,7 @@ from torchrl_dalir.pipeline import PRESETS, PipelineConfig
 from torchrl_dalir.pipeline.records import config_variant
 from torchrl_dalir.utils import atomic_write, ray_runtime, run_logged
 
-EXAMPLES = Path(__file__).resolve().parent
+EXAMPLES = Path(__file__).resolve().parents[1]  # examples/: the main job; the summary is beside this script
 LAUNCHERS = ("local", "ray")
 
 
@@ -84,7 +84,8 @@ def main(argv: list[str]) -> None:
     records = launch(cfg, runs)
     atomic_write(Path(cfg.out) / "sweep.json", json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))
     variant = config_variant(parse_config(PipelineConfig, run_arguments(cfg, *runs[0]), PRESETS))  # the summary's tables are of the runs' variant
-    subprocess.run([sys.executable, str(EXAMPLES / "summarize_results.py"), f"out={cfg.out}", f"variant={variant}"], check=True)
+    summarize = Path(__file__).resolve().parent / "summarize_results.py"
+    subprocess.run([sys.executable, str(summarize), f"out={cfg.out}", f"variant={variant}"], check=True)
     failed = [r for r in records if r["exit_code"] != 0]
     if failed:
         raise SystemExit(f"{len(failed)} of {len(records)} runs failed: {[r['log'] for r in failed]}")

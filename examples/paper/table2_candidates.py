@@ -1,8 +1,10 @@
 """Paper Table 2: where should DALI-R's candidate diversity come from?
 
-    python examples/table2_candidates.py policies=[.../disassemble/fm_seed0/checkpoint.pt] world_models=[.../world_model.pt]
-    python examples/table2_candidates.py policies=[a.pt,b.pt] world_models=[a_wm.pt,b_wm.pt] episodes=50 out=outputs/table2
-    python examples/table2_candidates.py ... sources=[dropout,cem] search.iterations=5 search.elites=8
+    python examples/paper/table2_candidates.py policies=[.../disassemble/fm_seed0/checkpoint.pt] \\
+        world_models=[.../world_model.pt]
+    python examples/paper/table2_candidates.py policies=[a.pt,b.pt] world_models=[a_wm.pt,b_wm.pt] \\
+        episodes=50 out=outputs/table2
+    python examples/paper/table2_candidates.py ... sources=[dropout,cem] search.iterations=5 search.elites=8
 
 Every (policy, world model) pair (one task and seed each) is evaluated on the same episodes with
 the same frozen policy, world model, scorer and selection rule (the paper's arg-max), changing only
@@ -29,14 +31,27 @@ from torchrl_dalir.allocator import reuse_freed_memory
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import config_dict, parse_config
 from torchrl_dalir.envs import get_task
-from torchrl_dalir.evaluation.compare import BASE, DALIR, evaluate_checkpoints, paired_sign_test, sign_test
+from torchrl_dalir.evaluation.compare import (
+    BASE,
+    COMMON_NOISE,
+    DALIR,
+    evaluate_checkpoints,
+    paired_sign_test,
+    sign_test,
+)
 from torchrl_dalir.evaluation.plots import plot_success_by_task
 from torchrl_dalir.pipeline.records import outcome_string
-from torchrl_dalir.reranking import CleanObservation, GaussianObservationNoise, PointDropout, SearchConfig
-from torchrl_dalir.reranking.selection import SelectionConfig
+from torchrl_dalir.reranking import (
+    CleanObservation,
+    RerankingConfig,
+    SearchConfig,
+    SelectionConfig,
+    candidate_generator,
+)
 from torchrl_dalir.utils import atomic_write, measured_once
 
 INPUT_SOURCES = {"dropout": "point dropout", "noise": "observation noise", "resample": "policy samples"}
+GENERATORS = {"dropout": "dropout", "noise": "noise", "resample": "clean"}  # each input source's RerankingConfig.candidates
 SEARCH_SOURCES = {"shooting": "random shooting", "cem": "CEM", "mppi": "MPPI", "gradient": "score-gradient ascent"}
 SOURCES = {**INPUT_SOURCES, **SEARCH_SOURCES}
 GRIPPER_DIMS = {"metaworld": [3], "adroit": []}  # MetaWorld actions are (dx, dy, dz, gripper); Adroit hands have no gripper
@@ -50,25 +65,21 @@ class Config:
     episodes: int = 50
     seed: int = 0  # the evaluation seed: episodes never overlap data-generation episodes
     device: str = "cpu"
-    num_candidates: int = 32  # the candidate budget of every source
-    dropout: float = 0.2  # point-dropout probability
-    noise_std: float = 0.01  # observation noise, metres
+    num_candidates: int = RerankingConfig.num_candidates  # the candidate budget of every source
+    dropout: float = RerankingConfig.dropout  # point-dropout probability
+    noise_std: float = RerankingConfig.noise_std  # observation noise, metres
     search: SearchConfig = field(default_factory=SearchConfig)  # the action-space methods' settings (the method is the source)
     keep_gripper: bool = True  # the search leaves the gripper command as sampled (the paper)
     selection: SelectionConfig = field(default_factory=SelectionConfig)  # the same rule for every source (the paper: arg-max)
     actor_seed: int = 0
-    common_noise: bool = True  # the clean candidate draws the base policy's own noise (common random numbers)
+    common_noise: bool = COMMON_NOISE  # the clean candidate draws the base policy's own noise (common random numbers)
     out: str = "outputs/table2"
 
 
 def candidate_source(name: str, cfg: Config, suite: str) -> dict:
     """The ``candidates`` and ``search`` of :func:`evaluate_checkpoints` for source ``name``."""
-    if name == "dropout":
-        return {"candidates": PointDropout(cfg.dropout)}
-    if name == "noise":
-        return {"candidates": GaussianObservationNoise(cfg.noise_std)}
-    if name == "resample":
-        return {"candidates": CleanObservation()}
+    if name in INPUT_SOURCES:
+        return {"candidates": candidate_generator(RerankingConfig(candidates=GENERATORS[name], dropout=cfg.dropout, noise_std=cfg.noise_std))}
     fixed = sorted({*cfg.search.fixed_dims, *(GRIPPER_DIMS[suite] if cfg.keep_gripper else [])})
     return {"candidates": CleanObservation(), "search": dataclasses.replace(cfg.search, method=name, fixed_dims=fixed)}
 

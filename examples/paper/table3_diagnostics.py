@@ -1,8 +1,9 @@
 """Paper Table 3: (a) what supervises the scorer, (b) how much mixed data the world model needs.
 
-    python examples/table3_diagnostics.py part=a out=outputs/pipeline                 # Pen and disassemble, seed 0
-    python examples/table3_diagnostics.py part=b out=outputs/pipeline mixed_sizes=[100,200,0]
-    python examples/table3_diagnostics.py part=a tasks=[disassemble] seeds=[0,1] overrides=[world_model.encoder=finetune]
+    python examples/paper/table3_diagnostics.py part=a out=outputs/pipeline  # Pen and disassemble, seed 0
+    python examples/paper/table3_diagnostics.py part=b out=outputs/pipeline mixed_sizes=[100,200,0]
+    python examples/paper/table3_diagnostics.py part=a tasks=[disassemble] seeds=[0,1] \\
+        overrides=[world_model.encoder=finetune]
 
 Each (task, seed) needs the main job's run (``examples/train_dp3_wm.py``, run here first if it is
 missing; finished stages are skipped), which gives the base policy and DALI-R with the scorer of
@@ -36,7 +37,7 @@ from torchrl_dalir.evaluation.plots import plot_data_scale, plot_success_by_task
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
 from torchrl_dalir.utils import atomic_write, run_logged
 
-EXAMPLES = Path(__file__).resolve().parent
+EXAMPLES = Path(__file__).resolve().parents[1]  # examples/, where the main job is
 PARTS = {"a": "scorer supervision", "b": "mixed-data scale"}
 VARIANT_RUN = ["calibration_episodes=0", "eval_methods=[argmax]"]  # a variant's evaluation: the paper's arg-max alone
 

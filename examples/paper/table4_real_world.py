@@ -1,7 +1,9 @@
 """Paper Table 4: does action input help the latent world model predict real point-cloud transitions?
 
-    python examples/table4_real_world.py stores=[data/drill.zarr,data/pour.zarr,data/dumpling.zarr] out=outputs/table4
-    python examples/table4_real_world.py made=true preset=cpu out=outputs/table4_made    # no real data: a made store
+    python examples/paper/table4_real_world.py \\
+        stores=[data/drill.zarr,data/pour.zarr,data/dumpling.zarr] out=outputs/table4
+    python examples/paper/table4_real_world.py made=true preset=cpu out=outputs/table4_made \\
+          # no real data: a made store
 
 Every DP3 zarr store (one per task, named after its folder without ``.zarr``) is imported as a
 trajectory dataset (:func:`~torchrl_dalir.data.import_dp3_zarr`: xyz farthest-point sampled to
@@ -211,7 +213,7 @@ def main(argv: list[str]) -> None:
     ]
     text = markdown(table, data) + (f"\n{note}\n" if note else "")
     print(text)
-    command = " ".join(["python examples/table4_real_world.py", *argv])
+    command = " ".join(["python examples/paper/table4_real_world.py", *argv])
     atomic_write(out / "table4.md", text)
     atomic_write(
         out / "table4.json",

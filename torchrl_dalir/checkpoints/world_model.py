@@ -1,7 +1,8 @@
 """World-model checkpoints: DALI-R's latent imagination module as saved, and loading it back.
 
-A world-model checkpoint holds the latent encoder, the world model, the state scorer and the
-scorer ensemble trained on top of one frozen policy (with a digest of that policy's weights),
+A world-model checkpoint holds the latent encoder (with its architecture, ``encoder_args``), the
+world model, the state scorer and the scorer ensemble trained on top of one frozen policy (this
+library's or any :class:`~torchrl_dalir.modules.ChunkPolicy`, with a digest of its weights),
 the selection rule (the paper's arg-max until calibration stores another) and the training
 run's held-out metrics. :func:`load_world_model` returns it as a :class:`WorldModelCheckpoint`.
 """
@@ -14,9 +15,10 @@ from pathlib import Path
 
 from torchrl_dalir.checkpoints.files import check_entries, load_checkpoint, load_weights, save_checkpoint
 from torchrl_dalir.modules.config import PolicyConfig
-from torchrl_dalir.modules.policies import ChunkPolicy3D, make_policy
+from torchrl_dalir.modules.policies import make_policy
+from torchrl_dalir.modules.policy_interface import ChunkPolicy
 from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
-from torchrl_dalir.reranking.selection import SelectionConfig
+from torchrl_dalir.selection_config import SelectionConfig
 from torchrl_dalir.utils import weights_digest
 
 # What a world-model checkpoint must hold to be loaded (the scorer ensemble is optional: older ones have none).
@@ -50,7 +52,8 @@ class WorldModelCheckpoint:
         selection: the selection rule (the calibrated one, or the paper's arg-max).
         calibration: the calibration record behind ``selection`` (``None`` until calibrated).
         metrics: the training run's held-out metrics.
-        policy_checkpoint: the path of the policy it was trained on top of, as given to training.
+        policy_checkpoint: the path of the policy it was trained on top of, as given to training (for a
+            policy object without a ``checkpoint``, its class and the start of its weights' digest).
         policy_digest: the digest of that policy's weights (``None`` in older checkpoints).
         held_out_trajectories: the mixed data's trajectories held out of training.
 
@@ -76,7 +79,7 @@ class WorldModelCheckpoint:
 def save_world_model(
     path: str | Path,
     *,
-    policy: ChunkPolicy3D,
+    policy: ChunkPolicy,
     policy_checkpoint: str | Path,
     encoder: LatentEncoder,
     scorer: TaskCompletionScorer,
@@ -89,35 +92,44 @@ def save_world_model(
     metrics: dict,
     encoder_mode: str,
     config: dict,
+    task: str | None = None,
 ) -> None:
     """Writes a world-model checkpoint (atomically) with the paper's arg-max as its selection rule
     until calibration stores another (:func:`store_selection`).
 
     Args:
         path: the checkpoint file.
-        policy: the frozen policy it was trained on top of (its task, architecture and weights' digest are stored).
-        policy_checkpoint: the file that policy was loaded from.
+        policy: the frozen policy it was trained on top of (its task, architecture and weights' digest are
+            stored): a :class:`~torchrl_dalir.modules.ChunkPolicy3D` or any other
+            :class:`~torchrl_dalir.modules.ChunkPolicy` (its digest is that of its ``state_dict``).
+        policy_checkpoint: the file that policy was loaded from (or a description of a policy object).
         encoder, scorer, world_model, ensemble: the trained modules (on the CPU).
         world_model_args, scorer_hidden, ensemble_args: the modules' constructor arguments.
         held_out_trajectories: the mixed data's trajectories held out of training.
         metrics: held-out metrics.
         encoder_mode: ``"finetune"`` or ``"frozen"``.
         config: the training configuration, stored for the record.
+        task: the task it was trained on (default: the policy's ``task``, which a policy of your own may lack).
     """
     from torchrl_dalir import __version__
 
+    if task is None:
+        if not hasattr(policy, "task"):
+            raise ValueError(f"{type(policy).__name__} names no task: pass save_world_model(..., task=...)")
+        task = policy.task
     save_checkpoint(
         path,
         {
             "kind": "world_model",
-            "task": policy.task,
+            "task": task,
             "config": config,
             "policy_checkpoint": str(policy_checkpoint),
             "policy_digest": weights_digest(policy),  # which policy's weights it was trained on (see check_trained_on)
             "encoder_mode": encoder_mode,
-            "policy_config": asdict(policy.config),
+            "policy_config": asdict(policy.config) if isinstance(getattr(policy, "config", None), PolicyConfig) else None,
+            "encoder_args": encoder.architecture(),  # rebuilds the encoder without the policy's configuration
             "action_dim": policy.action_dim,
-            "state_dim": policy.state_dim,
+            "state_dim": encoder.architecture()["state_dim"],
             "world_model_args": world_model_args,
             "scorer_hidden": scorer_hidden,
             "encoder_state": encoder.state_dict(),
@@ -133,14 +145,15 @@ def save_world_model(
     )
 
 
-def check_trained_on(state: dict, policy: ChunkPolicy3D, path: str | Path) -> None:
+def check_trained_on(state: dict, policy: ChunkPolicy, path: str | Path) -> None:
     """Refuses the world model of a loaded checkpoint ``state`` (read from ``path``) for a policy it
-    was not trained on top of: another task, or other weights than those whose digest it recorded
-    (latents of other encoders and chunks of another sampler would be scored). A checkpoint written
-    before digests were recorded is accepted with a warning."""
-    if state["task"] != policy.task:
+    was not trained on top of: another task (if the policy names its ``task``), or other weights than
+    those whose digest it recorded (latents of other encoders and chunks of another sampler would be
+    scored). A checkpoint written before digests were recorded is accepted with a warning."""
+    checkpoint = getattr(policy, "checkpoint", None)
+    if hasattr(policy, "task") and state["task"] != policy.task:
         raise ValueError(f"the world model at {path} is for task {state['task']!r}; the policy is for {policy.task!r}")
-    recorded, source = state.get("policy_digest"), f"at {policy.checkpoint}" if policy.checkpoint else "given"
+    recorded, source = state.get("policy_digest"), f"at {checkpoint}" if checkpoint else "given"
     if recorded is None:
         warnings.warn(
             f"{path} does not record which policy it was trained on (an older checkpoint): it is not checked against "
@@ -157,7 +170,7 @@ def check_trained_on(state: dict, policy: ChunkPolicy3D, path: str | Path) -> No
         )
 
 
-def load_world_model(path: str | Path, device="cpu", policy: ChunkPolicy3D | None = None) -> WorldModelCheckpoint:
+def load_world_model(path: str | Path, device="cpu", policy: ChunkPolicy | None = None) -> WorldModelCheckpoint:
     """Loads a world-model checkpoint's modules and records.
 
     Args:
@@ -168,8 +181,11 @@ def load_world_model(path: str | Path, device="cpu", policy: ChunkPolicy3D | Non
     state = load_checkpoint(path, "world_model", WORLD_MODEL_ENTRIES)
     if policy is not None:
         check_trained_on(state, policy, path)
-    shell = make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])
-    encoder = LatentEncoder.from_policy(shell)
+    if state["policy_config"] is not None:  # the policy's architecture (as loading always built it: the same draws from torch's generator)
+        encoder = LatentEncoder.from_policy(make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"]))
+    else:  # a policy of another design (a ChunkPolicy): the encoder's own architecture
+        check_entries(state, path, ("encoder_args",), "world_model checkpoint")
+        encoder = LatentEncoder.fresh(**state["encoder_args"])
     load_weights(encoder, state, "encoder_state", path)
     world_model = LatentWorldModel(**state["world_model_args"])
     load_weights(world_model, state, "world_model_state", path)

@@ -43,6 +43,8 @@ from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.history import latest_history
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 from torchrl_dalir.reranking.branching import branch, candidate_chunks, continue_base, executed_actions
+from torchrl_dalir.reranking.candidates import candidate_generator
+from torchrl_dalir.reranking.config import RerankingConfig
 from torchrl_dalir.seeds import check_data_seed
 from torchrl_dalir.utils import atomic_write, weights_digest
 
@@ -55,8 +57,8 @@ class BranchedMeta:
 
     task: str
     policy_digest: str
-    generator: str
-    strength: float
+    candidates: str  # the generator's name (RerankingConfig.candidates)
+    setting: float  # its dropout probability or noise std (0 for clean)
     num_candidates: int
     episodes: int
     stride: int
@@ -74,7 +76,7 @@ def _episode_rows(env, policy, generator, name: str, reset_seed: int, num_candid
     decisions: list[tuple] = []
     base_success, base_steps = continue_base(env, policy, [observation], reset_seed, 0, device,
                                              visit=lambda _, obs: decisions.append((env.get_state(), obs)))
-    action_steps, rows = policy.config.action_steps, []
+    action_steps, rows = policy.action_steps, []
     for j, (state, observations) in enumerate(decisions):
         if j % stride:
             continue
@@ -82,7 +84,7 @@ def _episode_rows(env, policy, generator, name: str, reset_seed: int, num_candid
         actions = executed_actions(policy, chunks)
         outcomes = [(base_success, base_steps - j * action_steps)]  # the clean branch is the base episode from here
         outcomes += [branch(env, policy, state, observations, actions[k], reset_seed, j, device) for k in range(1, num_candidates)]
-        history = latest_history(observations, policy.config.obs_steps)
+        history = latest_history(observations, policy.obs_steps)
         rows.append(TensorDict({
             keys.POINT_CLOUD: torch.as_tensor(np.stack([o[keys.POINT_CLOUD] for o in history])),
             keys.AGENT_POS: torch.as_tensor(np.stack([o[keys.AGENT_POS] for o in history])),
@@ -94,21 +96,24 @@ def _episode_rows(env, policy, generator, name: str, reset_seed: int, num_candid
     return torch.stack(rows)
 
 
-def collect_branched(policy, root: str | Path, generator, *, task: str | TaskSpec | None = None, name: str = "dropout",
-                     strength: float = 0.2, num_candidates: int = 8, episodes: int = 20, stride: int = 2, seed: int = 0,
-                     progress: bool = True, device="cpu") -> BranchedOutcomes:
-    """Branches ``num_candidates`` candidates of ``generator`` (named ``name``, at ``strength``, for the
-    record) at every ``stride``-th decision of ``episodes`` base-policy episodes on data seeds
+def collect_branched(policy, root: str | Path, reranking: RerankingConfig | None = None, *, task: str | TaskSpec | None = None,
+                     episodes: int = 20, stride: int = 2, seed: int = 0, progress: bool = True, device="cpu") -> BranchedOutcomes:
+    """Branches the candidates that ``reranking`` makes (its generator and ``num_candidates``; by
+    default 8 point-dropout candidates) at every ``stride``-th decision of ``episodes`` base-policy episodes on data seeds
     ``seed, seed + 1, ...`` of ``task`` (by default the policy's), and stores them under ``root`` (see the module docstring). Resumes an
     unfinished collection with the same plan; refuses a folder that holds another plan."""
     root = Path(root)
+    reranking = reranking if reranking is not None else RerankingConfig(num_candidates=8)
+    num_candidates, name = reranking.num_candidates, reranking.candidates
     check_at_least("num_candidates", num_candidates, 2)
+    generator = candidate_generator(reranking)
     check_at_least("episodes", episodes, 1)
     check_at_least("stride", stride, 1)
     check_data_seed(seed)
     check_data_seed(seed + episodes - 1)
-    spec, config = get_task(task if task is not None else policy.task), policy.config
-    meta = BranchedMeta(spec.name, weights_digest(policy), name, strength, num_candidates, episodes, stride, seed)
+    spec = get_task(task if task is not None else policy.task)
+    setting = {"dropout": reranking.dropout, "noise": reranking.noise_std}.get(name, 0.0)
+    meta = BranchedMeta(spec.name, weights_digest(policy), name, setting, num_candidates, episodes, stride, seed)
     if (root / "meta.json").exists():
         stored = BranchedMeta(**_read_json(root / "meta.json"))
         if stored.plan() != meta.plan():
@@ -119,8 +124,8 @@ def collect_branched(policy, root: str | Path, generator, *, task: str | TaskSpe
         meta.done_episodes = stored.done_episodes
     root.mkdir(parents=True, exist_ok=True)
     atomic_write(root / "meta.json", json.dumps(asdict(meta), indent=1))
-    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, decision_period=config.action_steps,
-                                history=config.obs_steps)
+    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps,
+                                history=policy.obs_steps)
     try:
         for episode in tqdm([e for e in range(episodes) if e not in meta.done_episodes], desc=f"branch {spec.name}",
                             disable=not progress):
@@ -169,4 +174,4 @@ class BranchedOutcomes:
 
     def __repr__(self) -> str:
         return (f"BranchedOutcomes(task={self.meta.task!r}, decisions={len(self)}, split={int(self.split_decisions().sum())}, "
-                f"candidates={self.meta.num_candidates}, generator={self.meta.generator!r}, root={str(self.root)!r})")
+                f"candidates={self.meta.num_candidates}, generator={self.meta.candidates!r}, root={str(self.root)!r})")

@@ -228,6 +228,7 @@ def collect(
     spec = get_task(task)
     check_choice("backend", backend, BACKENDS)
     check_at_least("num_workers", num_workers, 1)
+    check_at_least("chunk_size", chunk_size, 1)
     if not sources or any(s.num_trajectories < 0 for s in sources):
         raise ValueError("give at least one source, each with a non-negative number of trajectories")
     check_data_seed(seed * SEEDS_PER_DATASET)

@@ -18,7 +18,7 @@ demonstrations, so each is labeled a success (``terminal_label`` 1, ``quality`` 
 the label is assumed. They carry no reward either, so the rows have no ``reward`` column.
 
 :func:`write_dp3_zarr` writes episodes in DP3's layout (zarr format 2, as DP3 writes): the tests'
-stores and the made store of ``examples/table4_real_world.py``.
+stores and the made store of ``examples/paper/table4_real_world.py``.
 
 Reading needs the ``zarr`` package (``pip install 'torchrl_dalir[real]'``).
 """

@@ -22,9 +22,9 @@ from torchrl_dalir.checkpoints import load_world_model, store_selection
 from torchrl_dalir.config import check_at_least
 from torchrl_dalir.evaluation.compare import (
     BASE,
-    COMMON_NOISE,
     DALIR,
     evaluate_checkpoints,
+    evaluation_reranking,
     p_better,
     paired_sign_test,
     replays_base_policy,
@@ -85,6 +85,8 @@ def calibrate(
     paired comparison with the base policy, and the chosen entry. An entry that keeps the clean
     candidate at every decision (margin 1) is the base policy's episodes under common noise
     (:func:`~torchrl_dalir.evaluation.compare.replays_base_policy`) and is not run again.
+    ``evaluate_kwargs`` go to :func:`~torchrl_dalir.evaluation.compare.evaluate_checkpoints`, e.g.
+    ``reranking=RerankingConfig(num_candidates=16)`` (every entry's candidates; the entry is the rule).
 
     With ``confirm_episodes > 0`` a chosen entry other than the most conservative one must win
     again on ``confirm_episodes`` fresh validation episodes (evaluation seed ``confirm_seed``,
@@ -104,7 +106,7 @@ def calibrate(
     base_successes = [r["success"] for r in base["records"]]
     entries = []
     for entry in grid:
-        if replays_base_policy(entry, evaluate_kwargs.get("common_noise", COMMON_NOISE), evaluate_kwargs.get("search")):
+        if _replays_base_policy(entry, evaluate_kwargs):
             row = {**base, "seconds": 0.0}  # margin 1: the base policy's episodes, not run again
         else:
             row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=entry, **common)[DALIR]
@@ -184,7 +186,7 @@ def calibrate_on_failures(
     base_rate = base["success_rate"]
     entries = []
     for entry in grid:
-        if entry is conservative or not failed or replays_base_policy(entry, evaluate_kwargs.get("common_noise", COMMON_NOISE), evaluate_kwargs.get("search")):
+        if entry is conservative or not failed or _replays_base_policy(entry, evaluate_kwargs):
             continue
         row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=entry, seed=seed,
                                    episodes=len(failed) + len(solved), episode_indices=failed + solved, **evaluate_kwargs)[DALIR]
@@ -205,6 +207,14 @@ def calibrate_on_failures(
     if write:
         store_selection(world_model_path, chosen, record)
     return record
+
+
+def _replays_base_policy(entry: SelectionConfig, evaluate_kwargs: dict) -> bool:
+    """Whether ``entry`` replays the base policy's episodes under the evaluation's reranking settings
+    (``reranking=``, ``common_noise=``, ``search=`` of ``evaluate_kwargs``, as :func:`evaluate_checkpoints` reads them)."""
+    settings = evaluation_reranking(evaluate_kwargs.get("reranking"), common_noise=evaluate_kwargs.get("common_noise"),
+                                    search=evaluate_kwargs.get("search"))
+    return replays_base_policy(entry, settings.common_noise, settings.search)
 
 
 def _confirm(policy_path, world_model_path, entry: dict, episodes: int, seed: int, alpha: float, **evaluate_kwargs) -> dict:

@@ -26,23 +26,7 @@ from tqdm.auto import tqdm
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 from torchrl_dalir.reranking.branching import branch, candidate_chunks, continue_base, executed_actions
-from torchrl_dalir.reranking.candidates import CleanObservation, GaussianObservationNoise, PointDropout
 from torchrl_dalir.seeds import eval_episode_seed
-
-# Candidate generators the ceiling compares: the paper's point dropout, re-sampling the policy's
-# own noise from the clean observation, and Gaussian jitter of the points.
-GENERATORS: dict[str, Callable[[float], object]] = {
-    "dropout": PointDropout,  # probability p of dropping a point
-    "noise": lambda _: CleanObservation(),
-    "observation_noise": GaussianObservationNoise,  # std in metres
-}
-
-
-def make_generator(name: str, strength: float):
-    """The candidate generator ``name`` (:data:`GENERATORS`) at ``strength`` (dropout probability or noise std)."""
-    if name not in GENERATORS:
-        raise ValueError(f"unknown candidate generator {name!r}; choose among {sorted(GENERATORS)}")
-    return GENERATORS[name](strength)
 
 
 def oracle_choice(successes: list[bool], steps: list[int]) -> int | None:
@@ -73,7 +57,7 @@ def ceiling_episode(env: PointCloudObservation, policy, generators: dict[str, ob
             for j, (state, observations) in enumerate(decisions):
                 actions = executed_actions(policy, candidate_chunks(policy, generator, observations, num_candidates, episode_seed, j, name, device))
                 # candidate 0's branch is the base episode from decision j: its outcome is known
-                successes, steps = [base_success], [base_steps - j * policy.config.action_steps]
+                successes, steps = [base_success], [base_steps - j * policy.action_steps]
                 for k in range(1, num_candidates):
                     won, took = branch(env, policy, state, observations, actions[k], episode_seed, j, device)
                     successes.append(won)
@@ -84,7 +68,7 @@ def ceiling_episode(env: PointCloudObservation, policy, generators: dict[str, ob
                 chosen = oracle_choice(successes, steps)
                 if chosen is not None and outcome["decision"] in (None, j):
                     outcome.update(success=True, decision=j, candidate=chosen, winners=sum(successes),
-                                   steps=j * policy.config.action_steps + steps[chosen])
+                                   steps=j * policy.action_steps + steps[chosen])
                     if not exhaustive:
                         break
         record["generators"][name] = outcome
@@ -102,9 +86,8 @@ def candidate_ceiling(policy, task: str | TaskSpec, generators: dict[str, object
         raise ValueError(f"the policy was trained on {policy.task!r}, not {spec.name!r}")
     if num_candidates < 2:
         raise ValueError(f"num_candidates must be at least 2 (the clean candidate and one more), got {num_candidates}")
-    config = policy.config
-    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, decision_period=config.action_steps,
-                                history=config.obs_steps)
+    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps,
+                                history=policy.obs_steps)
     done, records = set(done), []
     try:
         todo = [e for e in range(episodes) if e not in done]

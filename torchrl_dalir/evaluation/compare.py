@@ -15,7 +15,7 @@ from torchrl_dalir.checkpoints import load_policy, load_world_model
 from torchrl_dalir.config import check_at_least, check_probability
 from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.modules.receding_horizon import receding_horizon
-from torchrl_dalir.reranking import PointDropout, RandomCandidateActor, RerankingActor, SearchConfig
+from torchrl_dalir.reranking import RandomCandidateActor, RerankingActor, RerankingConfig, SearchConfig
 from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
 from torchrl_dalir.reranking.candidates import DropoutPolicy
 from torchrl_dalir.reranking.selection import SelectionConfig
@@ -25,6 +25,20 @@ BASE, DALIR, ARGMAX, RANDOM, DROPOUT = "base policy", "DALI-R", "DALI-R argmax",
 METHODS = {"base": BASE, "dalir": DALIR, "argmax": ARGMAX, "random": RANDOM, "dropout": DROPOUT}  # short names for command lines
 RERANKING = ("dalir", "argmax", "random")  # the methods that choose among candidates: they need a world model
 COMMON_NOISE = True  # evaluations sample DALI-R's clean candidate as the base policy does (RerankingActor's common_noise)
+
+
+def evaluation_reranking(reranking: RerankingConfig | None = None, **settings) -> RerankingConfig:
+    """The reranking settings of an evaluation: ``reranking`` (by default the paper's,
+    :class:`~torchrl_dalir.reranking.RerankingConfig`, with :data:`COMMON_NOISE`), with the
+    ``settings`` given (not ``None``) replacing its own, e.g. ``num_candidates=8`` or ``dropout=0.3``.
+
+    Example:
+        >>> config = evaluation_reranking(num_candidates=8, search=None)
+        >>> config.num_candidates, config.dropout, config.common_noise
+        (8, 0.2, True)
+    """
+    base = reranking if reranking is not None else RerankingConfig(common_noise=COMMON_NOISE)
+    return base.updated(**settings)
 
 
 def check_evaluation_settings(episodes: int, seed: int, num_candidates: int = 1, dropout: float = 0.0, *, prefix: str = "",
@@ -47,12 +61,13 @@ def evaluate_checkpoints(
     episodes: int = 50,
     seed: int = 0,
     device: str = "cpu",
-    num_candidates: int = 32,
-    dropout: float = 0.2,
+    reranking: RerankingConfig | None = None,
+    num_candidates: int | None = None,
+    dropout: float | None = None,
     actor_seed: int = 0,
     methods: list[str] | None = None,
     selection: SelectionConfig | None = None,
-    common_noise: bool = COMMON_NOISE,
+    common_noise: bool | None = None,
     candidates=None,
     search: SearchConfig | None = None,
     progress: bool = True,
@@ -74,8 +89,12 @@ def evaluate_checkpoints(
     policy, and DALI-R if there is a world model. ``common_noise`` (the default) gives the reranking
     methods' clean candidate the base policy's own sampling noise (common random numbers, see
     :class:`RerankingActor`): keeping it replays the base policy's episode. ``candidates`` (a
-    candidate generator, by default :class:`PointDropout` ``(dropout)``) and ``search`` (an
-    action-space search, by default none) say how the reranking methods make their candidates. Returns
+    candidate generator, by default the one ``reranking`` names, :class:`PointDropout` ``(dropout)``)
+    and ``search`` (an action-space search, by default none) say how the reranking methods make
+    their candidates. ``reranking`` (:class:`~torchrl_dalir.reranking.RerankingConfig`, by
+    default the paper's settings with common noise, :func:`evaluation_reranking`) holds every
+    reranking setting; ``num_candidates``, ``dropout``, ``selection``, ``common_noise`` and
+    ``search``, when given, replace its own (``selection=None``: the checkpoint's rule). Returns
     ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with ``success_rate``, ``episodes``, ``seconds`` and per-episode ``records``; the reranking
     methods' records describe their choices in ``details`` (:func:`decision_summary`).
 
@@ -92,7 +111,10 @@ def evaluate_checkpoints(
     calibration that kept the base policy): its row is the base policy's episodes, marked
     ``"replays": "base policy"`` and without the per-decision ``details`` (run ``base`` first).
     """
-    check_evaluation_settings(episodes, seed, num_candidates, dropout, video=video)
+    config = evaluation_reranking(reranking, num_candidates=num_candidates, dropout=dropout, selection=selection,
+                                  common_noise=common_noise, search=search)
+    selection, common_noise, search = config.selection, config.common_noise, config.search
+    check_evaluation_settings(episodes, seed, config.num_candidates, config.dropout, video=video)
     if video and video_dir is None:
         raise ValueError(f"video={video} needs video_dir=<folder> for the files")
     methods = methods if methods is not None else ["base"] + (["dalir"] if world_model_path is not None else [])
@@ -104,7 +126,7 @@ def evaluate_checkpoints(
     policy = load_policy(policy_path, device)
     if world_model_path is not None:  # fails now, not after the base policy's episodes
         stored = load_world_model(world_model_path, policy=policy).selection
-    reranking = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
+    actors = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
     rules = {"dalir": {"selection": selection} if selection is not None else {}, "argmax": {"selection": SelectionConfig()}, "random": {}}
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}
     rows, by_rule = {}, {}  # DALI-R with the same rule on the same episodes gives the same row: run it once
@@ -122,12 +144,10 @@ def evaluate_checkpoints(
         if method == "base":
             actor, describe = receding_horizon(policy), None
         elif method == "dropout":
-            actor, describe = receding_horizon(DropoutPolicy(policy, dropout, actor_seed)), None
+            actor, describe = receding_horizon(DropoutPolicy(policy, config.dropout, actor_seed)), None
         else:
-            chooser = reranking[method].on_policy(
-                policy, world_model_path, device, num_candidates=num_candidates, seed=actor_seed, common_noise=common_noise,
-                candidates=candidates if candidates is not None else PointDropout(dropout), search=search, **rules[method],
-            )
+            chooser = actors[method].on_policy(policy, world_model_path, device, config=config, seed=actor_seed, candidates=candidates,
+                                               **rules[method])
             actor = receding_horizon(chooser)  # every step carries its decision's scores and choice
             describe = partial(decision_summary, action_steps=policy.config.action_steps)
         name = METHODS[method]
@@ -151,10 +171,10 @@ def evaluate_checkpoints(
 def replays_base_policy(selection: SelectionConfig, common_noise: bool = True, search: SearchConfig | None = None) -> bool:
     """Whether DALI-R with ``selection`` plays exactly the base policy's episodes, so need not be
     run: its rule keeps the clean candidate at every decision, which common noise samples as the
-    base policy does, and no action-space search replaces the candidates (tested in
-    ``tests/test_common_noise.py``). The replay skips what running would check on the way (e.g.
-    that the world model gives finite scores)."""
-    return selection.keeps_clean and common_noise and search is None
+    base policy does, and no action-space search replaces the candidates (``search`` is ``None``
+    or method ``none``; tested in ``tests/test_common_noise.py``). The replay skips what running
+    would check on the way (e.g. that the world model gives finite scores)."""
+    return selection.keeps_clean and common_noise and (search is None or search.method == "none")
 
 
 def paired_sign_test(base: list[bool], dalir: list[bool]) -> dict:

@@ -17,7 +17,7 @@ def make_expert(task: str | TaskSpec) -> TensorDictModule:
 
     MetaWorld tasks use MetaWorld's scripted policies; Door a scripted controller
     (:class:`DoorScriptedPolicy`); Pen a PPO policy trained here, shipped with the package
-    (:class:`PenExpertPolicy`, rebuilt by ``examples/train_pen_expert.py``).
+    (:class:`PenExpertPolicy`, rebuilt by ``examples/maintainer/train_pen_expert.py``).
     """
     spec = get_task(task)
     if spec.suite == ADROIT:

@@ -1,6 +1,6 @@
 """The Adroit Pen expert: a PPO policy trained on the simulator state.
 
-No Pen expert can be downloaded, so this one is trained here by ``examples/train_pen_expert.py``
+No Pen expert can be downloaded, so this one is trained here by ``examples/maintainer/train_pen_expert.py``
 (TorchRL PPO on the state, terminating at the first success as our evaluation protocol does).
 The committed weights live in ``torchrl_dalir/experts/weights/pen_expert.pt``; they include the
 observation normalisation, so :class:`PenExpertPolicy` needs nothing but the privileged state.
@@ -66,7 +66,9 @@ class PenExpertPolicy(nn.Module):
         """Loads the committed weights (or those at ``path``), in eval mode."""
         path = Path(path) if path is not None else DEFAULT_WEIGHTS
         if not path.exists():
-            raise FileNotFoundError(f"no Pen expert weights at {path}; build them with examples/train_pen_expert.py")
+            raise FileNotFoundError(
+                f"no Pen expert weights at {path}; build them with examples/maintainer/train_pen_expert.py"
+            )
         payload = safe_torch_load(path)
         policy = cls()
         policy.load_state_dict(payload["state_dict"])

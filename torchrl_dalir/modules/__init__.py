@@ -4,6 +4,7 @@ from torchrl_dalir.modules.config import PolicyConfig
 from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 from torchrl_dalir.modules.policies import ChunkPolicy3D, DiffusionPolicy3D, FlowMatchingPolicy3D, make_policy
+from torchrl_dalir.modules.policy_interface import ChunkPolicy
 from torchrl_dalir.modules.unet import ConditionalUnet1D
 from torchrl_dalir.modules.world_model import (
     LatentEncoder,
@@ -17,6 +18,7 @@ from torchrl_dalir.modules.world_model import (
 )
 
 __all__ = [
+    "ChunkPolicy",
     "ChunkPolicy3D",
     "ConditionalUnet1D",
     "DiffusionPolicy3D",

@@ -67,7 +67,7 @@ class PointCloudEncoder(nn.Module):
         super().__init__()
         self.point_mlp = _mlp([3, *hidden], layer_norm=True)
         self.projection = nn.Sequential(nn.Linear(hidden[-1], out_dim), nn.LayerNorm(out_dim))
-        self.out_dim = out_dim
+        self.hidden, self.out_dim = tuple(hidden), out_dim
 
     def point_features(self, cloud: torch.Tensor) -> torch.Tensor:
         """``[..., N, 3]`` -> ``[..., N, C]``."""
@@ -97,7 +97,7 @@ class StateEncoder(nn.Module):
     def __init__(self, state_dim: int, hidden: int = 64, out_dim: int = 64):
         super().__init__()
         self.net = nn.Sequential(nn.Linear(state_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim))
-        self.state_dim, self.out_dim = state_dim, out_dim
+        self.state_dim, self.hidden, self.out_dim = state_dim, hidden, out_dim
 
     def forward(self, state: torch.Tensor) -> torch.Tensor:
         if state.shape[-1] != self.state_dim:

@@ -63,6 +63,10 @@ def check_point_cloud(cloud: torch.Tensor, key: NestedKey = keys.POINT_CLOUD) ->
 class ChunkPolicy3D(TensorDictModuleBase):
     """Shared body: normalizers, observation encoders and the conditional U-Net.
 
+    It has every member of :class:`~torchrl_dalir.modules.policy_interface.ChunkPolicy`, what DALI-R
+    needs of a policy, and its optional ones (point dropout's per-point fast path, the action
+    normaliser, the observation checks); a policy of your own needs only the protocol's.
+
     Args:
         config: the architecture.
         action_dim: ``A``.
@@ -123,6 +127,22 @@ class ChunkPolicy3D(TensorDictModuleBase):
         self.unet = ConditionalUnet1D(
             action_dim, self.cond_dim, tuple(config.down_dims), config.kernel_size, config.groups, config.step_embed_dim
         )
+
+    # -- chunk sizes (the ChunkPolicy interface, torchrl_dalir.modules.policy_interface) ------
+    @property
+    def obs_steps(self) -> int:
+        """``To``, the observation history it reads (``config.obs_steps``)."""
+        return self.config.obs_steps
+
+    @property
+    def horizon(self) -> int:
+        """``H``, the chunk length (``config.horizon``)."""
+        return self.config.horizon
+
+    @property
+    def action_steps(self) -> int:
+        """The actions executed per decision (``config.action_steps``)."""
+        return self.config.action_steps
 
     # -- normalisation ---------------------------------------------------------------------
     def fit_normalizers(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor, action: torch.Tensor) -> None:

@@ -13,7 +13,7 @@ from torchrl.modules.tensordict_module.actors import MultiStepActorWrapper
 from torchrl_dalir import keys
 from torchrl_dalir.envs.make_env import env_task
 from torchrl_dalir.modules.config import executed_slice
-from torchrl_dalir.modules.policies import ChunkPolicy3D
+from torchrl_dalir.modules.policy_interface import ChunkPolicy, read_observation
 
 ACTION_PLAN = "action_plan"  # [..., action_steps, A], the part of the chunk that will be executed
 
@@ -56,10 +56,11 @@ def plan_key(key: NestedKey) -> tuple[str, ...]:
     return ("plan", *((key,) if isinstance(key, str) else key))
 
 
-def base_policy(actor: TensorDictModuleBase) -> ChunkPolicy3D | None:
-    """The chunk policy an actor samples from: the actor itself, or its ``policy`` (DALI-R, the dropout policy)."""
+def base_policy(actor: TensorDictModuleBase) -> ChunkPolicy | None:
+    """The chunk policy an actor samples from: the actor itself, or its ``policy`` (DALI-R, the dropout policy),
+    if it is a :class:`~torchrl_dalir.modules.ChunkPolicy` (which states its chunk sizes)."""
     for module in (actor, getattr(actor, "policy", None)):
-        if isinstance(module, ChunkPolicy3D):
+        if module is not None and isinstance(module, ChunkPolicy):
             return module
     return None
 
@@ -152,13 +153,13 @@ def check_env(actor: TensorDictModuleBase, env: EnvBase, action_key: NestedKey =
     policy = base_policy(actor)
     if policy is None:
         return
-    policy.read_observation(env.fake_tensordict(), actor.in_keys[:2])  # history, cloud and state sizes
+    read_observation(policy, env.fake_tensordict(), actor.in_keys[:2])  # history, cloud and state sizes
     action_dim = env.full_action_spec[action_key].shape[-1]
     if action_dim != policy.action_dim:
         raise ValueError(f"the env takes {action_dim}-D actions; the policy outputs {policy.action_dim}-D")
-    task = env_task(env)
-    if policy.task is not None and task is not None and task != policy.task.removesuffix("-v3"):
-        raise ValueError(f"the policy was trained on task {policy.task!r}; the env runs {task!r}")
+    task, trained_on = env_task(env), getattr(policy, "task", None)
+    if trained_on is not None and task is not None and task != trained_on.removesuffix("-v3"):
+        raise ValueError(f"the policy was trained on task {trained_on!r}; the env runs {task!r}")
 
 
 def receding_horizon(
@@ -178,8 +179,8 @@ def receding_horizon(
     env. The env needs ``is_init`` (``make_env`` adds an ``InitTracker``).
 
     ``obs_steps`` and ``action_steps`` default to those of the policy that ``chunk_policy`` is or
-    wraps (a base policy, :class:`~torchrl_dalir.reranking.RerankingActor`); other values are
-    refused. ``decision_keys``: other outputs of ``chunk_policy`` to keep (default: all of its
+    wraps (a base policy or any :class:`~torchrl_dalir.modules.ChunkPolicy`,
+    :class:`~torchrl_dalir.reranking.RerankingActor`); other values are refused. ``decision_keys``: other outputs of ``chunk_policy`` to keep (default: all of its
     ``out_keys`` but ``chunk_key``, e.g. DALI-R's candidate scores and choice); every step then
     carries the value of the decision its action came from. With ``env``, an env that the policy
     was not trained for (another task, history, cloud size or state size) is refused here;
@@ -192,10 +193,10 @@ def receding_horizon(
     else:
         given = {"obs_steps": obs_steps, "action_steps": action_steps}
         for name, value in given.items():
-            if value is not None and value != getattr(policy.config, name):
-                raise ValueError(f"{name}={value}, but the policy was trained with {name}={getattr(policy.config, name)} "
+            if value is not None and value != getattr(policy, name):
+                raise ValueError(f"{name}={value}, but the policy was trained with {name}={getattr(policy, name)} "
                                  "(leave it out: the policy's own is used)")
-        obs_steps, action_steps = policy.config.obs_steps, policy.config.action_steps
+        obs_steps, action_steps = policy.obs_steps, policy.action_steps
     if decision_keys is None:
         decision_keys = [key for key in chunk_policy.out_keys if key != unravel_key(chunk_key)]
     if env is not None:

@@ -28,15 +28,25 @@ from tensordict.nn import EnsembleModule, TensorDictModule
 from torch import nn
 
 from torchrl_dalir import keys
+from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
+
+# What LatentEncoder.from_policy copies: DP3's observation encoders and their normalizers (ChunkPolicy3D's).
+POLICY_ENCODERS = ("point_normalizer", "point_encoder", "state_normalizer", "state_encoder")
 
 
 class LatentEncoder(nn.Module):
     """``s_t = [state features, point-cloud features]`` of one observation (no history).
 
+    It starts as a copy of the policy's encoders (:meth:`from_policy`) when the policy has DP3's
+    (:class:`~torchrl_dalir.modules.ChunkPolicy3D`); for a policy of another design
+    (:class:`~torchrl_dalir.modules.ChunkPolicy`), :meth:`fresh` builds one of DP3's architecture
+    to be trained with the scorer (``train_world_model`` does either). Its normalizers then need
+    fitting (:meth:`fit_normalizers`).
+
     Args:
         point_normalizer, point_encoder, state_normalizer, state_encoder: modules with the
-            interfaces of :class:`~torchrl_dalir.modules.ChunkPolicy3D`'s; use :meth:`from_policy`.
+            interfaces of :class:`~torchrl_dalir.modules.ChunkPolicy3D`'s; use :meth:`from_policy` or :meth:`fresh`.
 
     Example:
         >>> from torchrl_dalir.modules import PolicyConfig, make_policy
@@ -44,6 +54,8 @@ class LatentEncoder(nn.Module):
         >>> encoder = LatentEncoder.from_policy(policy)  # a trainable copy of the policy's encoders
         >>> encoder.latent_dim, encoder(torch.rand(5, 64, 3), torch.rand(5, 4)).shape
         (128, torch.Size([5, 128]))
+        >>> LatentEncoder.fresh(**encoder.architecture()).latent_dim  # the same architecture, new weights
+        128
     """
 
     def __init__(self, point_normalizer, point_encoder, state_normalizer, state_encoder):
@@ -54,11 +66,34 @@ class LatentEncoder(nn.Module):
 
     @classmethod
     def from_policy(cls, policy) -> LatentEncoder:
-        """A trainable copy of a policy's encoders and normalizers (the policy is not touched)."""
-        parts = [policy.point_normalizer, policy.point_encoder, policy.state_normalizer, policy.state_encoder]
+        """A trainable copy of a policy's encoders and normalizers (the policy is not touched); the
+        policy needs DP3's (:data:`POLICY_ENCODERS`), as :class:`~torchrl_dalir.modules.ChunkPolicy3D` has."""
+        missing = [name for name in POLICY_ENCODERS if not hasattr(policy, name)]
+        if missing:
+            raise ValueError(f"{type(policy).__name__} has no {', '.join(missing)} to copy: build a new latent encoder with "
+                             "LatentEncoder.fresh(state_dim) and train it with the scorer (train_world_model(..., encoder=finetune) does)")
+        parts = [getattr(policy, name) for name in POLICY_ENCODERS]
         encoder = cls(*(copy.deepcopy(p) for p in parts))
         encoder.requires_grad_(True)
         return encoder
+
+    @classmethod
+    def fresh(cls, state_dim: int, point_hidden=(64, 128, 256), point_out: int = 64, state_hidden: int = 64, state_out: int = 64) -> LatentEncoder:
+        """A new, trainable encoder of DP3's architecture (by default its sizes) for ``state_dim``-D robot
+        states; its normalizers are the identity until fitted (:meth:`fit_normalizers`)."""
+        return cls(MinMaxNormalizer(3), PointCloudEncoder(tuple(point_hidden), point_out), MinMaxNormalizer(state_dim),
+                   StateEncoder(state_dim, state_hidden, state_out))
+
+    def architecture(self) -> dict:
+        """The sizes that :meth:`fresh` rebuilds this encoder's modules from (stored in world-model checkpoints)."""
+        return {"state_dim": self.state_encoder.state_dim, "point_hidden": list(self.point_encoder.hidden),
+                "point_out": self.point_encoder.out_dim, "state_hidden": self.state_encoder.hidden, "state_out": self.state_encoder.out_dim}
+
+    def fit_normalizers(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> LatentEncoder:
+        """Fits the point and state normalizers on observations (any leading shape)."""
+        self.point_normalizer.fit(point_cloud)
+        self.state_normalizer.fit(agent_pos)
+        return self
 
     def point_features(self, point_cloud: torch.Tensor) -> torch.Tensor:
         return self.point_encoder.point_features(self.point_normalizer(point_cloud))

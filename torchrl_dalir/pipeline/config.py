@@ -1,8 +1,8 @@
 """Configuration of the end-to-end job, ``examples/train_dp3_wm.py``: one task, every stage.
 
 The stage configurations of the collection, policy and world-model jobs are nested here; the
-job's ``preset`` selects the matching preset of each, and its ``task``, ``seed``, ``device`` and
-``out`` are passed down, so one command line sets the whole run.
+job's ``preset`` selects the matching preset of each, and its ``task``, ``seed``, ``device``,
+``wandb`` and ``out`` are passed down, so one command line sets the whole run.
 """
 
 from __future__ import annotations
@@ -16,9 +16,11 @@ from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
 from torchrl_dalir.data.config import CollectionConfig
 from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.evaluation.calibration import ALPHA, DESIGNS, FAILURES, GRIDS
-from torchrl_dalir.evaluation.compare import METHODS, check_evaluation_settings
+from torchrl_dalir.evaluation.compare import METHODS, check_evaluation_settings, evaluation_reranking
 from torchrl_dalir.modules.config import POLICY_KINDS
+from torchrl_dalir.reranking.config import RerankingConfig
 from torchrl_dalir.seeds import check_eval_seed
+from torchrl_dalir.training.logging import wandb_mode
 from torchrl_dalir.training.policy import PRESETS as POLICY_PRESETS
 from torchrl_dalir.training.policy import PolicyTrainingConfig
 from torchrl_dalir.training.world_model import PRESETS as WORLD_MODEL_PRESETS
@@ -64,11 +66,15 @@ class PipelineConfig:
         promising one is confirmed on as many fresh episodes of ``calibration_seed + 1`` as the
         screen took (:func:`~torchrl_dalir.evaluation.calibration.calibrate_on_failures`; ``calibration_episodes``
         and ``calibration_confirm_episodes`` then only say whether to calibrate at all).
-    num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability.
+    num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability (the
+        defaults of :class:`~torchrl_dalir.reranking.RerankingConfig`; :meth:`reranking` gives the record).
     redo: stages to run again from scratch even if their artifact exists
         (``redo=[world_model]``); later stages are redone too, and each previous run's
         directory is kept aside.
     until: the last stage to run (``until=mixed`` makes the policy and its data, then stops).
+    wandb: ``off`` (the default: CSV logs only), ``offline`` or ``online`` (``wandb login`` first):
+        passed to the policy and world-model trainings, and the calibration and evaluation results
+        are logged to wandb runs of their own (:mod:`torchrl_dalir.training.logging`).
     """
 
     task: str = "disassemble"
@@ -90,10 +96,11 @@ class PipelineConfig:
     calibration_grid: str = "argmax"  # argmax (base policy or ensemble arg-max) | all (the margin settings and the other rules) | margin (the margin settings only)
     calibration_design: str = "fixed"  # fixed | failures (sized by the base policy's failures)
     calibration_failures: int = FAILURES
-    num_candidates: int = 32
-    dropout: float = 0.2
+    num_candidates: int = RerankingConfig.num_candidates
+    dropout: float = RerankingConfig.dropout
     redo: list[str] = field(default_factory=list)
     until: str = "evaluation"
+    wandb: str = "off"  # off | offline | online (true/false: offline/off)
     collection: CollectionConfig = field(default_factory=CollectionConfig)
     policy_training: PolicyTrainingConfig = field(default_factory=PolicyTrainingConfig)
     world_model: WorldModelTrainingConfig = field(default_factory=WorldModelTrainingConfig)
@@ -124,6 +131,7 @@ class PipelineConfig:
         if self.calibration_episodes and self.calibration_seed == self.eval_seed:
             raise ValueError(f"calibration_seed must differ from eval_seed ({self.eval_seed}): the rule is chosen on validation, not test, episodes")
         check_choice("until", self.until, STAGES)
+        self.wandb = wandb_mode(self.wandb)
         unknown = set(self.redo) - set(STAGES)
         if unknown:
             raise ValueError(f"unknown stages {sorted(unknown)}; stages are {STAGES}")
@@ -142,19 +150,24 @@ class PipelineConfig:
             self.world_model.extra_data = [*self.world_model.extra_data, self.exploration_name()]
 
     def _stage_settings(self) -> dict[str, dict]:
-        """The stage settings that the job derives from its own: one task, seed, device and folder."""
+        """The stage settings that the job derives from its own: one task, seed, device, logging and folder."""
         root = Path(self.out)
         data = str(root / "data")
         mixed = f"mixed_{self.policy}_seed{self.seed}"  # the mixed data holds this policy's rollouts: each policy and seed has its own
         policy = {"task": self.task, "data": data, "out": str(root / "policies"), "policy": self.policy, "seed": self.seed,
-                  "device": self.device}
+                  "device": self.device, "wandb": self.wandb}
         return {
             "collection": {"task": self.task, "out": data, "mixed_name": mixed, "seed": self.seed},
             "policy_training": policy,
             "world_model": {"task": self.task, "data": data, "out": str(root / "world_models" / self.policy), "mixed_name": mixed,
-                            "seed": self.seed, "device": self.device,
+                            "seed": self.seed, "device": self.device, "wandb": self.wandb,
                             "policy_checkpoint": str(replace(self.policy_training, **policy).run_dir() / "checkpoint.pt")},
         }
+
+    def reranking(self) -> RerankingConfig:
+        """DALI-R's settings in the job's calibration and evaluation: its ``num_candidates`` and
+        ``dropout``, the evaluations' common noise, the selection rule the checkpoint stores."""
+        return evaluation_reranking(num_candidates=self.num_candidates, dropout=self.dropout)
 
     def exploration_name(self) -> str:
         return f"explore_{self.policy}_seed{self.seed}"

@@ -5,7 +5,7 @@ and lives outside the repository; a run record keeps what the result tables need
 that made the run, every method's success on each test episode (``"0110..."``), the selection
 rule it used, its calibration on validation episodes and, for runs that logged them, each stage's
 wall time (the attempt that finished it) and the job's peak memory. Records written by different sessions
-on different machines add up: ``examples/summarize_results.py records=[docs/results/runs]``
+on different machines add up: ``examples/paper/summarize_results.py records=[docs/results/runs]``
 builds the tables from them, so seeds can be added one run at a time.
 
 A record whose per-episode outcomes were not kept (runs summarised before records existed)
@@ -27,10 +27,11 @@ from torchrl_dalir.utils import atomic_write
 RECORD_VERSION = 1
 PAPER = "paper"  # the variant of a run with the paper's world model and data
 SHORT = {name: short for short, name in METHODS.items()}  # "base policy" -> "base", ...
-# the stages' settings that the main job derives from its own task, seed, device and folder, and its
-# own settings that do not change a run's results: not part of the command
-_DERIVED = {"out", "data", "mixed_name", "policy_checkpoint", "task", "seed", "policy", "device"}
-_NOT_RESULTS = {"out", "preset", "task", "seed", "policy", "redo", "until"}
+# the stages' settings that the main job derives from its own task, seed, device, logging and folder,
+# and its own settings that do not change a run's results: not part of the command (runs before
+# wandb became opt-in logged to offline wandb runs: policy_training.wandb=true)
+_DERIVED = {"out", "data", "mixed_name", "policy_checkpoint", "task", "seed", "policy", "device", "wandb"}
+_NOT_RESULTS = {"out", "preset", "task", "seed", "policy", "redo", "until", "wandb"}
 TIMING_KEYS = ("stage_seconds", "peak_memory_gib", "workers_peak_memory_gib")  # from the run's stage log
 # settings whose default changed after they were added: the value a run that predates them ran at
 _ADDED_AS = {"calibration_grid": "all"}

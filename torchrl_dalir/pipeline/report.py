@@ -27,7 +27,7 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
     results = cfg.results_dir()
     rows = evaluate_checkpoints(
         policy_path, world_model_path, episodes=cfg.eval_episodes, seed=cfg.eval_seed, device=cfg.device,
-        num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.seed, methods=cfg.eval_methods,
+        reranking=cfg.reranking(), actor_seed=cfg.seed, methods=cfg.eval_methods,
     )
     policy = load_policy(policy_path, task=cfg.task)
 

@@ -22,11 +22,12 @@ from torchrl_dalir.config import config_dict
 from torchrl_dalir.data import Source, collect
 from torchrl_dalir.data.storage import is_complete
 from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, calibrate_on_failures
-from torchrl_dalir.evaluation.compare import DALIR
+from torchrl_dalir.evaluation.compare import BASE, DALIR, p_better, paired_sign_test
 from torchrl_dalir.pipeline.config import STAGES, PipelineConfig
 from torchrl_dalir.pipeline.report import evaluate_and_report
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training import train_policy, train_world_model
+from torchrl_dalir.training.logging import log_results
 from torchrl_dalir.training.policy import exploration_actor, policy_actor
 from torchrl_dalir.utils import atomic_write
 
@@ -131,7 +132,7 @@ def run_pipeline(cfg: PipelineConfig) -> Path:
     # 6. Base policy, DALI-R (calibrated rule and the paper's arg-max) and the random-candidate
     #    control on the same test episodes.
     # (done only if DALI-R was evaluated with the rule that the world model now names)
-    stage("evaluation", cfg, results / "results.json", lambda: evaluate_and_report(cfg, policy_path, world_model_path),
+    stage("evaluation", cfg, results / "results.json", lambda: evaluate_and_log(cfg, policy_path, world_model_path),
           finished=lambda path: path.exists() and evaluated_rule(path) in (None, load_world_model(world_model_path).selection.name))
     if cfg.until == STAGES[-1]:
         print((results / "results.md").read_text())
@@ -173,7 +174,7 @@ def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_pat
     the paper's arg-max) and stores it in the world model; the record also goes to ``out``."""
     if cfg.calibration_episodes > 0:
         common = dict(grid=GRIDS[cfg.calibration_grid], alpha=cfg.calibration_alpha, seed=cfg.calibration_seed, test_seed=cfg.eval_seed,
-                      device=cfg.device, num_candidates=cfg.num_candidates, dropout=cfg.dropout, actor_seed=cfg.seed)
+                      device=cfg.device, reranking=cfg.reranking(), actor_seed=cfg.seed)
         if cfg.calibration_design == "failures":
             record = calibrate_on_failures(policy_path, world_model_path, failures=cfg.calibration_failures, **common)
         else:
@@ -183,9 +184,67 @@ def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_pat
         record = {"chosen": SelectionConfig().name, "episodes": 0}
         store_selection(world_model_path, SelectionConfig(), record)
     atomic_write(out, json.dumps(record, indent=1))
+    log_calibration(cfg, record)
 
 
 def evaluated_rule(results_path: Path) -> str | None:
     """The selection rule with which a finished evaluation ran DALI-R (``None``: it did not)."""
     success = json.loads(results_path.read_text())["success"]
     return success[DALIR].get("selection", "argmax(state)") if DALIR in success else None  # earlier runs: the arg-max
+
+
+def log_calibration(cfg: PipelineConfig, record: dict) -> None:
+    """With ``cfg.wandb`` on, the calibration's results go to a wandb run ``<task>_<run name>_calibration``
+    saved under the calibration folder: ``calibration/base_success_rate`` (the base policy on the
+    validation episodes), per grid entry ``calibration/<entry>/success_rate`` (the ``failures``
+    design: ``estimated_gain``) and ``calibration/<entry>/p_one_sided`` (the sign-test p-value
+    against the base policy that ``calibration_alpha`` bounds), the confirmation's
+    ``success_rate``, ``base_success_rate``, ``p_one_sided`` and ``confirmed`` (1 or 0), and
+    ``calibration/chosen_is_base``; the chosen setting, the design, alpha and the episode count are
+    the run's configuration. ``wandb=off``: nothing (``calibration.json`` holds it all)."""
+    if cfg.wandb == "off":
+        return
+
+    def p_one_sided(vs_base: dict) -> float:
+        return p_better(vs_base["base_only"], vs_base["dalir_only"])
+
+    numbers = {"calibration/base_success_rate": record["base_success_rate"]} if "base_success_rate" in record else {}
+    for entry in record.get("entries", []):
+        for key in ("success_rate", "estimated_gain"):
+            if key in entry:
+                numbers[f"calibration/{entry['name']}/{key}"] = entry[key]
+        if "vs_base" in entry:
+            numbers[f"calibration/{entry['name']}/p_one_sided"] = p_one_sided(entry["vs_base"])
+    confirmation = record.get("confirmation")
+    if confirmation:
+        for key in ("success_rate", "base_success_rate"):
+            numbers[f"calibration/confirmation/{key}"] = confirmation[key]
+        numbers["calibration/confirmation/p_one_sided"] = p_one_sided(confirmation["vs_base"])
+        numbers["calibration/confirmation/confirmed"] = float(confirmation["confirmed"])
+    numbers["calibration/chosen_is_base"] = float(record["chosen"] == GRIDS[cfg.calibration_grid][0].name)  # margin 1
+    details = {"chosen": record["chosen"], "design": record.get("design", "fixed"), "alpha": record.get("alpha"),
+               "episodes": record["episodes"], "grid": cfg.calibration_grid, "seed": record.get("seed")}
+    log_results(cfg.calibration_dir(), f"{cfg.task}_{cfg.run_name()}_calibration", cfg.wandb, numbers, details)
+
+
+def evaluate_and_log(cfg: PipelineConfig, policy_path: Path, world_model_path: Path) -> None:
+    """The evaluation stage: :func:`~torchrl_dalir.pipeline.report.evaluate_and_report`, then, with
+    ``cfg.wandb`` on, its results to a wandb run ``<task>_<run name>_evaluation`` saved under the
+    results folder: per method ``evaluation/<method>/success_rate`` on the test episodes and, for
+    every method but the base policy, ``evaluation/<method>/p_two_sided`` (the paired sign test
+    against the base policy, as in ``results.md``); the episode count, evaluation seed and DALI-R's
+    selection rule are the run's configuration."""
+    evaluate_and_report(cfg, policy_path, world_model_path)
+    if cfg.wandb == "off":
+        return
+    success = json.loads((cfg.results_dir() / "results.json").read_text())["success"]
+    base = [r["success"] for r in success[BASE]["records"]] if BASE in success else None
+    numbers = {}
+    for name, row in success.items():
+        numbers[f"evaluation/{name}/success_rate"] = row["success_rate"]
+        if base is not None and name != BASE:
+            test = paired_sign_test(base, [r["success"] for r in row["records"]])
+            numbers[f"evaluation/{name}/p_two_sided"] = test["p_value"]
+    details = {"episodes": cfg.eval_episodes, "eval_seed": cfg.eval_seed,
+               "selection": success.get(DALIR, {}).get("selection")}
+    log_results(cfg.results_dir(), f"{cfg.task}_{cfg.run_name()}_evaluation", cfg.wandb, numbers, details)

@@ -9,14 +9,16 @@ from pathlib import Path
 import torch
 from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch import nn
 
 from torchrl_dalir import keys
 from torchrl_dalir.checkpoints.policy import load_policy
 from torchrl_dalir.checkpoints.world_model import load_world_model
-from torchrl_dalir.config import check_at_least
-from torchrl_dalir.modules.policies import ChunkPolicy3D, check_finite_output
+from torchrl_dalir.modules.policies import check_finite_output
+from torchrl_dalir.modules.policy_interface import ChunkPolicy, check_chunk_policy, executed, read_observation
 from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
-from torchrl_dalir.reranking.candidates import PointDropout
+from torchrl_dalir.reranking.candidates import candidate_generator
+from torchrl_dalir.reranking.config import RerankingConfig
 from torchrl_dalir.reranking.search import SearchConfig, search_candidates
 from torchrl_dalir.reranking.selection import SelectionConfig, select
 
@@ -39,16 +41,24 @@ class RerankingActor(TensorDictModuleBase):
     scores and chosen index. :meth:`reset` replays its decisions from the start.
 
     Args:
-        policy: the frozen base policy.
+        policy: the frozen base policy: any :class:`~torchrl_dalir.modules.ChunkPolicy` (checked here,
+            naming what it lacks), e.g. this library's :class:`~torchrl_dalir.modules.ChunkPolicy3D`
+            or a policy of your own (README, "Wrap your own policy").
         encoder, world_model, scorer: the latent imagination module (see
             :mod:`torchrl_dalir.modules.world_model`).
+        config: the reranking settings (:class:`~torchrl_dalir.reranking.RerankingConfig`, by default
+            the paper's: 32 point-dropout candidates with probability 0.2, the arg-max); the
+            keyword arguments below, when given, replace its settings.
         num_candidates: candidates per decision (the paper: 32).
-        candidates: the candidate generator (default :class:`PointDropout` ``(0.2)``; or
-            :class:`~torchrl_dalir.reranking.candidates.GaussianObservationNoise`, or
-            :class:`~torchrl_dalir.reranking.candidates.CleanObservation`, the seeds of an action-space search).
+        candidates: the candidate generator (default: the one ``config`` names, :class:`PointDropout`
+            ``(0.2)``; or :class:`~torchrl_dalir.reranking.candidates.GaussianObservationNoise`, or
+            :class:`~torchrl_dalir.reranking.candidates.CleanObservation`, the seeds of an action-space search),
+            or a generator's name (:data:`~torchrl_dalir.reranking.config.CANDIDATE_GENERATORS`).
         search: an action-space search around the generated candidates (default ``none``; random
             shooting, CEM, MPPI or score-gradient ascent on the selection's scorer, see
             :mod:`~torchrl_dalir.reranking.search`): the paper's Table 2 alternatives to point dropout.
+            It works in the policy's normalised action space (its ``action_normalizer``), or in the
+            world model's for a policy without one.
         seed: seeds candidate perturbations and policy noise, so decisions are reproducible.
         ensemble: the scorer ensemble trained on imagined latents (needed by
             ``selection.scorer="ensemble"``).
@@ -86,43 +96,50 @@ class RerankingActor(TensorDictModuleBase):
 
     def __init__(
         self,
-        policy: ChunkPolicy3D,
+        policy: ChunkPolicy,
         encoder: LatentEncoder,
         world_model: LatentWorldModel,
         scorer: TaskCompletionScorer,
         *,
-        num_candidates: int = 32,
+        config: RerankingConfig | None = None,
+        num_candidates: int | None = None,
         candidates=None,
         seed: int = 0,
         ensemble: ScorerEnsemble | None = None,
         selection: SelectionConfig | None = None,
         search: SearchConfig | None = None,
-        common_noise: bool = False,
+        common_noise: bool | None = None,
         in_keys: Sequence[NestedKey] = (keys.POINT_CLOUD, keys.AGENT_POS),
         out_keys: Sequence[NestedKey] = (keys.ACTION_CHUNK, CANDIDATE_SCORES, CHOSEN_CANDIDATE),
     ):
         super().__init__()
         self.in_keys, self.out_keys = list(in_keys), list(out_keys)
-        check_at_least("num_candidates", num_candidates, 1)
+        check_chunk_policy(policy, type(self).__name__)
+        config = (config if config is not None else RerankingConfig()).updated(
+            num_candidates=num_candidates, selection=selection, search=search, common_noise=common_noise,
+            candidates=candidates if isinstance(candidates, str) else None,
+        )
         if world_model.action_dim != policy.action_dim:
             raise ValueError(f"the world model takes {world_model.action_dim}-D actions; the policy outputs {policy.action_dim}-D")
-        if world_model.action_steps != policy.config.action_steps:
-            raise ValueError(f"the world model imagines {world_model.action_steps} actions; the policy executes {policy.config.action_steps}")
+        if world_model.action_steps != policy.action_steps:
+            raise ValueError(f"the world model imagines {world_model.action_steps} actions; the policy executes {policy.action_steps}")
         if world_model.latent_dim != encoder.latent_dim:
             raise ValueError("the world model and the latent encoder disagree on the latent size")
-        self.selection = selection if selection is not None else SelectionConfig()
+        self.config = config
+        self.selection = config.selection if config.selection is not None else SelectionConfig()
         if self.selection.scorer == "ensemble" and ensemble is None:
             raise ValueError(f"selection {self.selection.name} needs a scorer ensemble; this world model has none "
                              "(checkpoints written before version 0.2.0 have none: retrain the world-model stage)")
-        self.search = search if search is not None else SearchConfig()
-        self.search.check(num_candidates, policy.action_dim)
+        self.search = config.search
+        self.search.check(config.num_candidates, policy.action_dim)
         self.policy, self.encoder, self.world_model, self.scorer, self.ensemble = policy, encoder, world_model, scorer, ensemble
         for module in (policy, encoder, world_model, scorer, ensemble):
-            if module is not None:
+            if isinstance(module, nn.Module):
                 module.eval().requires_grad_(False)
-        self.num_candidates = num_candidates
-        self.candidates = candidates if candidates is not None else PointDropout(0.2)
-        self.seed, self.common_noise = seed, common_noise
+        self.executed = executed(policy)  # the chunk entries a decision executes, which the world model imagines
+        self.num_candidates = config.num_candidates
+        self.candidates = candidates if candidates is not None and not isinstance(candidates, str) else candidate_generator(config)
+        self.seed, self.common_noise = seed, config.common_noise
         self.generator = torch.Generator().manual_seed(seed)
 
     def reset(self, seed: int | None = None) -> None:
@@ -140,18 +157,21 @@ class RerankingActor(TensorDictModuleBase):
         return cls.on_policy(load_policy(policy_path, device), world_model_path, device, **kwargs)
 
     @classmethod
-    def on_policy(cls, policy: ChunkPolicy3D, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
-        """Wraps an already loaded policy with the world model trained on top of it; refuses a
-        world model of another task or another policy
+    def on_policy(cls, policy: ChunkPolicy, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
+        """Wraps an already loaded policy (any :class:`~torchrl_dalir.modules.ChunkPolicy`) with the
+        world model trained on top of it; refuses a world model of another task or another policy
         (:func:`~torchrl_dalir.checkpoints.check_trained_on`). The selection rule is the
-        checkpoint's unless ``selection=`` is passed; a stored rule that always keeps the clean
-        candidate (calibration found no rule that beat the base policy) is used with a warning,
-        since the actor then executes the base policy's chunks at DALI-R's cost."""
+        checkpoint's unless ``selection=`` (or a ``config=`` with a ``selection``) is passed; a
+        stored rule that always keeps the clean candidate (calibration found no rule that beat the
+        base policy) is used with a warning, since the actor then executes the base policy's chunks
+        at DALI-R's cost."""
         parts = load_world_model(world_model_path, device, policy=policy)
-        if cls.uses_selection and "selection" not in kwargs and parts.selection.keeps_clean:
+        given = "selection" in kwargs or (kwargs.get("config") is not None and kwargs["config"].selection is not None)
+        if cls.uses_selection and not given and parts.selection.keeps_clean:
             warnings.warn(f"{world_model_path}: the calibrated rule {parts.selection.name} always keeps the clean candidate, so this actor "
                           "executes the base policy's chunks; pass selection= to rerank anyway", stacklevel=2)
-        kwargs.setdefault("selection", parts.selection)
+        if not given:
+            kwargs["selection"] = parts.selection
         return cls(policy, parts.encoder, parts.world_model, parts.scorer, ensemble=parts.ensemble, **kwargs)
 
     @torch.no_grad()
@@ -159,7 +179,7 @@ class RerankingActor(TensorDictModuleBase):
         """Imagined latents ``[B, K, L]`` after the executed part of chunks ``[B, K, H, A]``,
         from observations ``[B, To, ...]``."""
         latent = self.encoder(cloud[:, -1], agent_pos[:, -1])  # s_t from the current observation
-        return self._imagine_executed(latent, chunks[..., self.policy.config.executed, :])
+        return self._imagine_executed(latent, chunks[..., self.executed, :])
 
     def _imagine_executed(self, latent: torch.Tensor, executed: torch.Tensor) -> torch.Tensor:
         return self.world_model.imagine(latent.unsqueeze(1).expand(-1, executed.shape[1], -1), executed)
@@ -201,13 +221,19 @@ class RerankingActor(TensorDictModuleBase):
         if self.search.method == "none":
             return chunks
         objective = self.objective(cloud, agent_pos)
-        return search_candidates(chunks, objective, self.search, self.policy.action_normalizer, self.policy.config.executed, self.generator)
+        return search_candidates(chunks, objective, self.search, self.search_normalizer(), self.executed, self.generator)
+
+    def search_normalizer(self):
+        """The action space an action-space search works in: the policy's normalised actions (its
+        ``action_normalizer``), or, for a policy without one, the world model's (fitted on its data)."""
+        normalizer = getattr(self.policy, "action_normalizer", None)
+        return normalizer if normalizer is not None else self.world_model.action_normalizer
 
     def _policy_samples(self, cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
         cond = self.candidates.conditions(self.policy, cloud, agent_pos, self.num_candidates, self.generator)
         if not self.common_noise:
             return self.policy.sample(cond, self.generator)
-        shape = (cond.shape[0], self.num_candidates, self.policy.config.horizon, self.policy.action_dim)
+        shape = (cond.shape[0], self.num_candidates, self.policy.horizon, self.policy.action_dim)
         noise = torch.randn(shape, generator=self.generator).to(cond.device)  # as without common noise
         clean = self.policy.sample(self.policy.encode(cloud, agent_pos))  # the base policy's own call, bit for bit
         return torch.cat([clean.unsqueeze(1), self.policy.sample(cond[:, 1:], noise=noise[:, 1:])], dim=1)
@@ -221,12 +247,12 @@ class RerankingActor(TensorDictModuleBase):
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        cloud, agent_pos = self.policy.read_observation(tensordict, self.in_keys)
+        cloud, agent_pos = read_observation(self.policy, tensordict, self.in_keys)
         batch = cloud.shape[:-3]
         cloud, agent_pos = cloud.reshape(-1, *cloud.shape[-3:]), agent_pos.reshape(-1, *agent_pos.shape[-2:])
         chunks = self.sample_candidates(cloud, agent_pos)
         members = self.member_scores(cloud, agent_pos, chunks)
-        best = select(members, self.selection, self.generator, actions=chunks[..., self.policy.config.executed, :])
+        best = select(members, self.selection, self.generator, actions=chunks[..., self.executed, :])
         chosen = chunks[torch.arange(len(best)), best]
         chunk_key, scores_key, chosen_key = self.out_keys
         tensordict.set(chunk_key, chosen.reshape(*batch, *chosen.shape[1:]))

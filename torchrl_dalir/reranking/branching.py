@@ -19,6 +19,7 @@ import torch
 from torchrl_dalir import keys
 from torchrl_dalir.envs.gym_env import PointCloudObservation
 from torchrl_dalir.envs.history import latest_history
+from torchrl_dalir.modules.config import executed_slice
 
 
 def stack_observations(observations: list[dict], device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -41,7 +42,7 @@ def execute_actions(env: PointCloudObservation, actions: np.ndarray) -> tuple[li
 
 def observation_history(policy, observations: list[dict], device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """The policy's input ``[1, To, ...]``: the history of the latest of an episode's ``observations``."""
-    return tuple(x[None] for x in stack_observations(latest_history(observations, policy.config.obs_steps), device))
+    return tuple(x[None] for x in stack_observations(latest_history(observations, policy.obs_steps), device))
 
 
 def _stream(*parts: int | str) -> torch.Generator:
@@ -52,7 +53,7 @@ def _stream(*parts: int | str) -> torch.Generator:
 def decision_noise(policy, episode_seed: int, decision: int) -> torch.Tensor:
     """The base policy's sampling noise ``[1, H, A]`` at ``decision`` of the episode reset with
     ``episode_seed``: the same for every branch that reaches that decision (common random numbers)."""
-    shape = (1, policy.config.horizon, policy.action_dim)
+    shape = (1, policy.horizon, policy.action_dim)
     return torch.randn(shape, generator=_stream("base", episode_seed, decision))
 
 
@@ -94,7 +95,7 @@ def candidate_chunks(policy, generator, observations: list[dict], num_candidates
 
 def executed_actions(policy, chunks: torch.Tensor) -> np.ndarray:
     """The actions ``[..., k, A]`` that the env executes of chunks ``[..., H, A]``."""
-    return chunks[..., policy.config.executed, :].cpu().numpy()
+    return chunks[..., executed_slice(policy.obs_steps, policy.action_steps), :].cpu().numpy()
 
 
 def branch(env: PointCloudObservation, policy, state, observations: list[dict], actions: np.ndarray,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from torchrl_dalir.reranking.actor import RerankingActor
@@ -30,6 +32,8 @@ class RandomCandidateActor(RerankingActor):
 
     def __init__(self, *args, **kwargs):
         kwargs.pop("selection", None)
+        if kwargs.get("config") is not None:
+            kwargs["config"] = dataclasses.replace(kwargs["config"], selection=None)
         super().__init__(*args, **kwargs)
 
     @torch.no_grad()

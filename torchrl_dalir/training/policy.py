@@ -22,8 +22,9 @@ from torchrl_dalir.envs.tasks import ADROIT, METAWORLD, get_task
 from torchrl_dalir.modules import ChunkPolicy3D, PolicyConfig, make_policy
 from torchrl_dalir.modules.config import BY_TASK, POLICY_KINDS
 from torchrl_dalir.objectives import ConsistencyFlowMatchingLoss, DiffusionLoss, FlowMatchingLoss
+from torchrl_dalir.reranking.config import RerankingConfig
 from torchrl_dalir.training import distributed
-from torchrl_dalir.training.logging import make_logger
+from torchrl_dalir.training.logging import make_logger, wandb_mode
 from torchrl_dalir.training.loop import OptimConfig, fit
 from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
 
@@ -59,7 +60,7 @@ class PolicyTrainingConfig:
     precision: str = "auto"  # auto (bf16 autocast where the hardware runs it natively) | bf16 | fp32
     checkpoint_every: int = 500
     log_every: int = 50
-    wandb: bool = True  # offline unless the user has set wandb up (WANDB_MODE)
+    wandb: str = "off"  # off (CSV only) | offline | online (training/logging.py); true/false: offline/off
     progress: bool = True
 
     def __post_init__(self):
@@ -72,6 +73,7 @@ class PolicyTrainingConfig:
                 "cpu budget (Door: 0 % success, docs/measurements.md); the protocol's Adroit FM predicts the clean chunk, "
                 "the default (flow_prediction=task)")  # one place: shown once
         check_choice("precision", self.precision, PRECISIONS)
+        self.wandb = wandb_mode(self.wandb)
         for name, minimum in (("batch_size", 1), ("epochs", 1), ("num_steps", 0), ("checkpoint_every", 1), ("log_every", 1)):
             check_at_least(name, getattr(self, name), minimum)
         distributed.check_global_batch("batch_size", self.batch_size)
@@ -147,7 +149,7 @@ def train_policy(cfg: PolicyTrainingConfig) -> Path:
     policy.to(device)
     num_steps = cfg.num_steps or cfg.epochs * math.ceil(len(windows) / cfg.batch_size)
     run_dir = cfg.run_dir()
-    logger = make_logger(run_dir, f"{cfg.task}_{cfg.policy}_seed{cfg.seed}", use_wandb=cfg.wandb, config=config_dict(cfg))
+    logger = make_logger(run_dir, f"{cfg.task}_{cfg.policy}_seed{cfg.seed}", wandb=cfg.wandb, config=config_dict(cfg))
 
     fit(
         _loss_module(policy),
@@ -175,7 +177,7 @@ def policy_actor(path: str | Path, device: str = "cpu"):
     return receding_horizon(load_policy(path, device))
 
 
-def exploration_actor(path: str | Path, dropout: float = 0.2, seed: int = 0, device: str = "cpu"):
+def exploration_actor(path: str | Path, dropout: float = RerankingConfig.dropout, seed: int = 0, device: str = "cpu"):
     """Like :func:`policy_actor`, but every decision acts on a point-dropout view of the
     observation (:class:`~torchrl_dalir.reranking.candidates.DropoutPolicy`): rollouts of the
     candidates DALI-R chooses among, for the world model's and scorer's data."""

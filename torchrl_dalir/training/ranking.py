@@ -25,6 +25,7 @@ from torchrl_dalir import keys
 from torchrl_dalir.config import check_at_least, check_choice
 from torchrl_dalir.data.branched import RESET_SEED, SUCCESS, BranchedOutcomes
 from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
+from torchrl_dalir.modules.config import executed_slice
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 from torchrl_dalir.modules.world_model import TaskCompletionScorer
 from torchrl_dalir.objectives.within_state_ranking import CANDIDATE_FEATURES, WithinStateRankingLoss
@@ -68,7 +69,7 @@ def candidate_features(rows: TensorDict, policy, input: str = "state_chunk", act
                        encoder=None, world_model=None) -> torch.Tensor:
     """What the scorer reads of each candidate of branched decisions ``rows``: ``[B, K, F]``."""
     cloud, agent_pos = rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]
-    executed = rows[keys.ACTION_CHUNK][:, :, policy.config.executed]  # [B, K, k, A]
+    executed = rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]  # [B, K, k, A]
     num_candidates = executed.shape[1]
     if input == "state_chunk":
         state = policy.encode(cloud, agent_pos).unsqueeze(1).expand(-1, num_candidates, -1)
@@ -93,7 +94,7 @@ def train_ranking_scorer(outcomes: BranchedOutcomes, policy, cfg: RankingTrainin
     on the training and the held-out decisions that split (with their counts)."""
     torch.manual_seed(cfg.seed)
     rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
-    executed = rows[keys.ACTION_CHUNK][:, :, policy.config.executed]
+    executed = rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]
     normalizer = MinMaxNormalizer(executed.shape[-1]).fit(executed)
     table = TensorDict({CANDIDATE_FEATURES: candidate_features(rows, policy, cfg.input, normalizer, encoder, world_model),
                         SUCCESS: rows[SUCCESS]}, [len(rows)])

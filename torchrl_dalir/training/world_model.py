@@ -27,7 +27,7 @@ as in one process), and only rank 0 computes the held-out metrics and writes ``w
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -41,13 +41,16 @@ from torchrl_dalir.data import TrajectoryDataset, dense_reward_targets
 from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
+from torchrl_dalir.modules.policy_interface import ChunkPolicy, check_chunk_policy
+from torchrl_dalir.modules.world_model import POLICY_ENCODERS
 from torchrl_dalir.objectives import ImaginedCompletionLoss, LatentDynamicsLoss, TaskCompletionLoss
 from torchrl_dalir.objectives.imagined_completion import IMAGINED_LATENT
 from torchrl_dalir.objectives.latent_dynamics import LATENT
 from torchrl_dalir.training import distributed
-from torchrl_dalir.training.logging import make_logger
+from torchrl_dalir.training.logging import make_logger, wandb_mode
 from torchrl_dalir.training.loop import OptimConfig, fit
 from torchrl_dalir.training.precision import PRECISIONS, autocast_dtype
+from torchrl_dalir.utils import weights_digest
 
 # The scorer's training target: the sparse terminal labels' Monte-Carlo targets (the method), or
 # the simulator's dense reward-to-go (an oracle, for the ablation).
@@ -115,7 +118,7 @@ class WorldModelTrainingConfig:
     precision: str = "auto"  # auto (bf16 autocast where the hardware runs it natively) | bf16 | fp32
     checkpoint_every: int = 500
     log_every: int = 50
-    wandb: bool = True
+    wandb: str = "off"  # off (CSV only) | offline | online (training/logging.py); true/false: offline/off
     progress: bool = True
 
     def __post_init__(self):
@@ -126,6 +129,7 @@ class WorldModelTrainingConfig:
                              "use the sparse labels (scorer_target=completion)")
         check_choice("encoder", self.encoder, ENCODER_MODES)
         check_choice("precision", self.precision, PRECISIONS)
+        self.wandb = wandb_mode(self.wandb)
         for name in ("scorer_batch_size", "wm_batch_size", "ensemble_batch_size", "scorer_epochs", "wm_epochs", "ensemble_members",
                      "checkpoint_every", "log_every"):
             check_at_least(name, getattr(self, name), 1)
@@ -207,7 +211,7 @@ def encode_rows(encoder: LatentEncoder, rows: TensorDict, batch_size: int = 1024
 
     Collecting per-batch pieces instead left small live blocks between each batch's large freed
     activations: a heap that is never trimmed (the examples' malloc tunables) then grew with every batch
-    (``examples/benchmark_encoder_memory.py``, three passes over 20,000 rows: a 7.9 GiB peak,
+    (``examples/benchmarks/benchmark_encoder_memory.py``, three passes over 20,000 rows: a 7.9 GiB peak,
     against 2.4 GiB written in place).
     """
     latents = torch.empty(len(rows), encoder.latent_dim)
@@ -229,16 +233,45 @@ def _scorer_metrics(probabilities: torch.Tensor, targets: torch.Tensor, bins: in
     return {"brier": ((probabilities - targets) ** 2).mean().item(), "calibration_error": float(ece)}
 
 
-def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
+def frozen_policy(cfg: WorldModelTrainingConfig, policy: ChunkPolicy | str | Path | None = None) -> tuple[ChunkPolicy, WorldModelTrainingConfig]:
+    """The policy a world model is trained on top of, and ``cfg`` with its ``policy_checkpoint`` set to
+    where it came from: loaded from ``cfg.policy_checkpoint`` (``policy=None``) or from a path, or a
+    policy object (any :class:`~torchrl_dalir.modules.ChunkPolicy`; recorded as its ``checkpoint`` if
+    it names one, else as its class and weights' digest). A policy of another task is refused."""
+    if policy is None:
+        return load_policy(cfg.policy_checkpoint, task=cfg.task), cfg
+    if isinstance(policy, (str, Path)):
+        return load_policy(policy, task=cfg.task), replace(cfg, policy_checkpoint=str(policy))
+    check_chunk_policy(policy, "train_world_model")
+    task = getattr(policy, "task", None)
+    if task is not None and task != cfg.task:
+        raise ValueError(f"the policy was trained on task {task!r}; this world model is for {cfg.task!r}")
+    source = getattr(policy, "checkpoint", None) or f"{type(policy).__name__} object (weights digest {weights_digest(policy)[:12]})"
+    return policy, replace(cfg, policy_checkpoint=str(source))
+
+
+def train_world_model(cfg: WorldModelTrainingConfig, policy: ChunkPolicy | str | Path | None = None) -> Path:
     """Trains (or resumes) the latent encoder, scorer and world model; returns the checkpoint.
-    Under torchrun, data-parallel over the ranks (only rank 0 writes)."""
+    Under torchrun, data-parallel over the ranks (only rank 0 writes).
+
+    Args:
+        cfg: the configuration.
+        policy: the frozen policy to train on top of: ``None`` loads ``cfg.policy_checkpoint``; a
+            path loads that checkpoint; or a policy object, this library's or any
+            :class:`~torchrl_dalir.modules.ChunkPolicy` (the checkpoint records the digest of its
+            ``state_dict``, and :meth:`~torchrl_dalir.reranking.RerankingActor.on_policy` refuses
+            other weights). The latent encoder starts as a copy of the policy's encoders if it has
+            DP3's (:data:`~torchrl_dalir.modules.world_model.POLICY_ENCODERS`); otherwise it is a
+            new encoder of DP3's architecture, its normalizers fitted on the training rows, trained
+            with the scorer (``encoder=finetune``; ``frozen`` needs the policy's encoders).
+    """
     run_dir = cfg.run_dir()
     final = run_dir / "world_model.pt"
     if final.exists():
         return final
     device = distributed.setup(cfg.device)
     torch.manual_seed(cfg.seed)
-    policy = load_policy(cfg.policy_checkpoint, task=cfg.task)
+    policy, cfg = frozen_policy(cfg, policy)
     mixed = training_data(cfg)
     rows = mixed.rows
     ensemble_sources = source_mask(mixed, cfg.ensemble_sources) if cfg.ensemble_sources else None  # fails before any training
@@ -252,7 +285,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
     train_rows = torch.nonzero(kept[rows[keys.TRAJECTORY_ID]]).squeeze(-1)
     if ensemble_sources is not None and not ensemble_sources[rows[keys.SOURCE][train_rows]].any():
         raise ValueError(f"no training trajectory of the sources {cfg.ensemble_sources} (all held out?): add data of them or name others")
-    logger = make_logger(run_dir, f"{cfg.task}_world_model_seed{cfg.seed}", use_wandb=cfg.wandb, config=config_dict(cfg))
+    logger = make_logger(run_dir, f"{cfg.task}_world_model_seed{cfg.seed}", wandb=cfg.wandb, config=config_dict(cfg))
     autocast = autocast_dtype(cfg.precision, device)
 
     def train_stage(loss_module, model, data, train_index, batch_shape, steps, optim, name, dtype=None):
@@ -266,7 +299,14 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
         ).module
 
     # Stage 1: latent encoder + task-completion scorer (or the scorer alone on frozen latents).
-    encoder = LatentEncoder.from_policy(policy).to(device)
+    if all(hasattr(policy, name) for name in POLICY_ENCODERS):
+        encoder = LatentEncoder.from_policy(policy).to(device)
+    elif cfg.encoder == "frozen":
+        raise ValueError(f"encoder=frozen keeps the policy's own encoders, and {type(policy).__name__} has none to copy "
+                         f"({', '.join(POLICY_ENCODERS)}): use encoder=finetune, which trains a new encoder with the scorer")
+    else:  # a policy of another design: a new encoder of DP3's architecture, trained with the scorer
+        encoder = LatentEncoder.fresh(rows[keys.AGENT_POS].shape[-1])
+        encoder = encoder.fit_normalizers(rows[keys.POINT_CLOUD][train_rows], rows[keys.AGENT_POS][train_rows]).to(device)
     scorer = TaskCompletionScorer(encoder.latent_dim, cfg.scorer_hidden).to(device)
     epoch_steps = cfg.scorer_epochs * -(-len(train_rows) // cfg.scorer_batch_size)
     if cfg.encoder == "finetune":
@@ -286,7 +326,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
         {LATENT: latents, **{k: rows[k] for k in (keys.ACTION, keys.IS_FINAL, keys.TRAJECTORY_ID, keys.STEP, keys.COMPLETION_TARGET, target_key, keys.TERMINAL_LABEL, keys.QUALITY)}},
         batch_size=[len(rows)],
     )
-    k = policy.config.action_steps
+    k = policy.action_steps
     future_keys = (LATENT,) if target_key == keys.COMPLETION_TARGET else (LATENT, target_key)  # the ensemble's target at t + k
     windows = TrajectoryWindows(TrajectoryDataset(mixed.root, mixed.meta, latent_rows), obs_steps=1, horizon=k, future_offset=k, observation_keys=future_keys)
     anchor_trajectories = windows.dataset.rows[keys.TRAJECTORY_ID][windows.anchors]
@@ -330,6 +370,7 @@ def train_world_model(cfg: WorldModelTrainingConfig) -> Path:
         final,
         policy=policy,
         policy_checkpoint=cfg.policy_checkpoint,
+        task=cfg.task,
         encoder=encoder,
         scorer=scorer,
         world_model=world_model,
