@@ -89,6 +89,15 @@ def test_oracle_executes_the_candidate_whose_branch_succeeds(exhaustive):
     assert summary["generators"]["index"]["failures_fixed"] == 1
 
 
+def test_a_stride_branches_every_stride_th_decision_only():
+    # Decisions 0, 2 and 4 of the 5 are branched; candidate 3 fixes the episode from the first one.
+    policy, generators = ConstantPolicy(), {"index": IndexGenerator()}
+    oracle = ceiling_episode(LineEnv(), policy, generators, episode_seed=0, num_candidates=4, stride=2)["generators"]["index"]
+    assert (oracle["success"], oracle["decision"], oracle["candidate"], oracle["steps"]) == (True, 0, 3, 7)
+    exhaustive = ceiling_episode(LineEnv(), policy, generators, episode_seed=0, num_candidates=4, stride=2, exhaustive=True)
+    assert len(exhaustive["generators"]["index"]["branch_successes"]) == 3  # decisions 0, 2 and 4 of 5
+
+
 def test_no_winning_candidate_keeps_the_base_policy():
     record = ceiling_episode(LineEnv(), ConstantPolicy(), {"index": IndexGenerator()}, episode_seed=0, num_candidates=3)
     oracle = record["generators"]["index"]

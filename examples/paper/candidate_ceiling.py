@@ -41,6 +41,7 @@ class Config:
     episodes: int = 20
     seed: int = 1  # evaluation seed of the validation episodes
     exhaustive: bool = False  # branch every candidate at every decision (counts the decisions that split)
+    stride: int = 1  # the oracle chooses at every stride-th decision (> 1: a cheaper lower bound)
     out: str = "outputs/candidate_ceiling"
     json: str | None = None
     device: str = "cpu"
@@ -55,6 +56,7 @@ class Config:
             raise ValueError(f"seed={TEST_SEED} holds the test episodes; measure the ceiling on validation episodes (seed=1)")
         check_at_least("num_candidates", self.num_candidates, 2)
         check_at_least("episodes", self.episodes, 1)
+        check_at_least("stride", self.stride, 1)
         for path in self.policies:
             if not Path(path).is_file():
                 raise FileNotFoundError(f"no policy checkpoint at {path}")
@@ -68,7 +70,7 @@ class Config:
     def settings(self) -> dict:
         """What an episode's outcome depends on, besides the policy: a resumed file must match it."""
         return {"generators": {g: self.strength(g) for g in self.generators}, "num_candidates": self.num_candidates,
-                "seed": self.seed, "exhaustive": self.exhaustive}
+                "seed": self.seed, "exhaustive": self.exhaustive, "stride": self.stride}
 
 
 def _run_name(path: str) -> str:
@@ -106,7 +108,7 @@ def measure(cfg: Config, checkpoint: str) -> dict:
 
     generators = {g: candidate_generator(cfg.reranking(g)) for g in cfg.generators}
     episodes += candidate_ceiling(policy, policy.task, generators, episodes=cfg.episodes, seed=cfg.seed,
-                                  num_candidates=cfg.num_candidates, exhaustive=cfg.exhaustive,
+                                  num_candidates=cfg.num_candidates, exhaustive=cfg.exhaustive, stride=cfg.stride,
                                   done=[r["episode"] for r in episodes], on_episode=append, progress=cfg.progress,
                                   device=cfg.device)
     episodes = sorted((r for r in episodes if r["episode"] < cfg.episodes), key=lambda r: r["episode"])

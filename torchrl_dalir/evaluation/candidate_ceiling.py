@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 from torchrl_dalir.reranking.branching import branch, candidate_chunks, continue_base, executed_actions
@@ -39,8 +40,10 @@ def oracle_choice(successes: list[bool], steps: list[int]) -> int | None:
 
 
 def ceiling_episode(env: PointCloudObservation, policy, generators: dict[str, object], episode_seed: int,
-                    num_candidates: int = 8, exhaustive: bool = False, device="cpu") -> dict:
-    """One episode: the base policy's outcome and, per generator, the oracle's (see the module docstring)."""
+                    num_candidates: int = 8, exhaustive: bool = False, stride: int = 1, device="cpu") -> dict:
+    """One episode: the base policy's outcome and, per generator, the oracle's (see the module docstring).
+    With ``stride > 1`` the oracle chooses only at every ``stride``-th decision (and keeps the base
+    policy's chunk at the others): a lower bound on the every-decision ceiling, at ``1 / stride`` of the cost."""
     device = torch.device(device)
     observation, _ = env.reset(seed=episode_seed)
     decisions: list[tuple] = []  # (simulator state, observations so far) at every decision of the base episode
@@ -55,6 +58,8 @@ def ceiling_episode(env: PointCloudObservation, policy, generators: dict[str, ob
             outcome["branch_successes"] = []
         if not base_success or exhaustive:
             for j, (state, observations) in enumerate(decisions):
+                if j % stride:
+                    continue
                 actions = executed_actions(policy, candidate_chunks(policy, generator, observations, num_candidates, episode_seed, j, name, device))
                 # candidate 0's branch is the base episode from decision j: its outcome is known
                 successes, steps = [base_success], [base_steps - j * policy.action_steps]
@@ -76,7 +81,7 @@ def ceiling_episode(env: PointCloudObservation, policy, generators: dict[str, ob
 
 
 def candidate_ceiling(policy, task: str | TaskSpec, generators: dict[str, object], *, episodes: int = 20, seed: int = 1,
-                      num_candidates: int = 8, exhaustive: bool = False, done: Iterable[int] = (),
+                      num_candidates: int = 8, exhaustive: bool = False, stride: int = 1, done: Iterable[int] = (),
                       on_episode: Callable[[dict], None] | None = None, progress: bool = True, device="cpu") -> list[dict]:
     """The ceiling over ``episodes`` evaluation episodes of evaluation ``seed`` (use a validation seed):
     a record per episode (:func:`ceiling_episode`, plus ``episode``). Episodes in ``done`` are skipped
@@ -86,6 +91,7 @@ def candidate_ceiling(policy, task: str | TaskSpec, generators: dict[str, object
         raise ValueError(f"the policy was trained on {policy.task!r}, not {spec.name!r}")
     if num_candidates < 2:
         raise ValueError(f"num_candidates must be at least 2 (the clean candidate and one more), got {num_candidates}")
+    check_at_least("stride", stride, 1)
     env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps,
                                 history=policy.obs_steps)
     done, records = set(done), []
@@ -93,7 +99,7 @@ def candidate_ceiling(policy, task: str | TaskSpec, generators: dict[str, object
         todo = [e for e in range(episodes) if e not in done]
         for episode in tqdm(todo, desc=f"ceiling {spec.name}", disable=not progress):
             record = {"episode": episode, **ceiling_episode(env, policy, generators, eval_episode_seed(seed, episode),
-                                                            num_candidates, exhaustive, device)}
+                                                            num_candidates, exhaustive, stride, device)}
             records.append(record)
             if on_episode is not None:
                 on_episode(record)
