@@ -40,14 +40,30 @@ def main(argv: list[str]) -> None:
     common = cfg.collection_kwargs()
     if cfg.stage in ("demos", "all"):
         start = time.perf_counter()
-        demos = collect(cfg.task, cfg.demos_dir(), [Source("expert", cfg.num_demos)], seed=2 * cfg.seed, successes_only=True, **common)
+        demos = collect(
+            cfg.task,
+            cfg.demos_dir(),
+            [Source("expert", cfg.num_demos)],
+            seed=2 * cfg.seed,
+            successes_only=True,
+            **common,
+        )
         describe("demos", demos, time.perf_counter() - start)
     if cfg.stage in ("mixed", "all"):
         start = time.perf_counter()
-        mixed = collect(cfg.task, cfg.mixed_dir(), cfg.mixed_sources(), seed=2 * cfg.seed + 1, noise_correlation=cfg.noise_correlation, **common)
+        mixed = collect(
+            cfg.task,
+            cfg.mixed_dir(),
+            cfg.mixed_sources(),
+            seed=2 * cfg.seed + 1,
+            noise_correlation=cfg.noise_correlation,
+            **common,
+        )
         describe("mixed", mixed, time.perf_counter() - start)
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

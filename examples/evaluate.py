@@ -4,8 +4,10 @@
     python examples/evaluate.py policy_checkpoint=.../checkpoint.pt world_model=.../world_model.pt episodes=100
     python examples/evaluate.py policy_checkpoint=... world_model=... methods=[random]   # the random-choice control
     python examples/evaluate.py policy_checkpoint=... methods=[base,dropout]   # the base policy on point-dropout views
-    python examples/evaluate.py policy_checkpoint=... world_model=... methods=[dalir] selection.rule=argmax   # another rule
-    python examples/evaluate.py policy_checkpoint=... world_model=... video=2   # GIFs of the first 2 episodes of each method
+    # another rule:
+    python examples/evaluate.py policy_checkpoint=... world_model=... methods=[dalir] selection.rule=argmax
+    # GIFs of the first 2 episodes of each method:
+    python examples/evaluate.py policy_checkpoint=... world_model=... video=2
 
 Prints a table and writes ``<out>/evaluation.json`` (rates and per-episode records) and
 ``<out>/evaluation.csv`` (one row per method and episode; DALI-R's rows also describe its choices,
@@ -38,9 +40,12 @@ class Config:
     num_candidates: int = RerankingConfig.num_candidates
     dropout: float = RerankingConfig.dropout
     actor_seed: int = 0
-    methods: list[str] | None = None  # among base, dalir, argmax, random (DALI-R's candidates chosen at random), dropout (one point-dropout candidate)
+    # among base, dalir, argmax, random (DALI-R's candidates chosen at random), dropout (one point-dropout candidate)
+    methods: list[str] | None = None
     selection: SelectionConfig | None = None  # DALI-R's rule (selection.rule=argmax ...); default: the checkpoint's
-    common_noise: bool = COMMON_NOISE  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
+    common_noise: bool = (
+        COMMON_NOISE  # DALI-R's clean candidate draws the base policy's own noise (common random numbers)
+    )
     out: str = "outputs/evaluation"
     video: int = 0  # record the first <video> episodes of each method as GIFs under <out>/videos/
 
@@ -52,9 +57,21 @@ def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
     out = writable_dir(cfg.out)  # now, not after the episodes
     rows = evaluate_checkpoints(
-        cfg.policy_checkpoint, cfg.world_model, episodes=cfg.episodes, seed=cfg.seed, device=cfg.device,
-        reranking=RerankingConfig(num_candidates=cfg.num_candidates, dropout=cfg.dropout, selection=cfg.selection, common_noise=cfg.common_noise),
-        actor_seed=cfg.actor_seed, methods=cfg.methods, video=cfg.video, video_dir=out / "videos",
+        cfg.policy_checkpoint,
+        cfg.world_model,
+        episodes=cfg.episodes,
+        seed=cfg.seed,
+        device=cfg.device,
+        reranking=RerankingConfig(
+            num_candidates=cfg.num_candidates,
+            dropout=cfg.dropout,
+            selection=cfg.selection,
+            common_noise=cfg.common_noise,
+        ),
+        actor_seed=cfg.actor_seed,
+        methods=cfg.methods,
+        video=cfg.video,
+        video_dir=out / "videos",
     )
     print(f"\n{'method':16s} {'success':>8s} {'episodes':>9s} {'seconds':>8s}")
     for name, row in rows.items():
@@ -65,10 +82,15 @@ def main(argv: list[str]) -> None:
     writer = csv.DictWriter(table, ["method", "episode", "reset_seed", "success", "steps", "episode_return", *details])
     writer.writeheader()
     for name, row in rows.items():
-        writer.writerows({"method": name, **{k: v for k, v in record.items() if k != "details"}, **record["details"]} for record in row["records"])
+        writer.writerows(
+            {"method": name, **{k: v for k, v in record.items() if k != "details"}, **record["details"]}
+            for record in row["records"]
+        )
     atomic_write(out / "evaluation.csv", table.getvalue())
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

@@ -1,4 +1,5 @@
-"""DALI-R end to end on one task: demos -> base policy -> mixed data -> exploration -> world model -> calibration -> evaluation.
+"""DALI-R end to end on one task: demos -> base policy -> mixed data -> exploration -> world model -> calibration
+-> evaluation.
 
     python examples/train_dp3_wm.py                                  # disassemble, cpu preset
     python examples/train_dp3_wm.py task=shelf-place policy=dp seed=1
@@ -25,5 +26,7 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

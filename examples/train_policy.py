@@ -48,11 +48,25 @@ def main(argv: list[str]) -> None:
     if cfg.eval_episodes:
         policy = load_policy(path, cfg.device, task=cfg.task)
         actor = receding_horizon(policy)
-        result = evaluate(actor, cfg.task, cfg.eval_episodes, cfg.eval_seed, num_points=policy.num_points, history=cfg.model.obs_steps, device=cfg.device, progress=cfg.progress)
+        result = evaluate(
+            actor,
+            cfg.task,
+            cfg.eval_episodes,
+            cfg.eval_seed,
+            num_points=policy.num_points,
+            history=cfg.model.obs_steps,
+            device=cfg.device,
+            progress=cfg.progress,
+        )
         atomic_write(path.parent / f"eval_seed{cfg.eval_seed}.json", json.dumps(result.to_dict(), indent=1))
-        print(f"{cfg.task} {cfg.policy} seed {cfg.seed}: success {result.success_rate:.1%} over {cfg.eval_episodes} episodes")
+        print(
+            f"{cfg.task} {cfg.policy} seed {cfg.seed}: "
+            f"success {result.success_rate:.1%} over {cfg.eval_episodes} episodes"
+        )
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

@@ -1,6 +1,7 @@
 """Train DALI-R's latent encoder, task-completion scorer and latent world model on a task's mixed data.
 
-    python examples/train_world_model.py task=disassemble preset=cpu policy_checkpoint=outputs/policies/disassemble/fm_seed0/checkpoint.pt
+    python examples/train_world_model.py task=disassemble preset=cpu \\
+        policy_checkpoint=outputs/policies/disassemble/fm_seed0/checkpoint.pt
     torchrun --nproc_per_node=2 examples/train_world_model.py task=disassemble preset=cpu policy_checkpoint=...
 
 (under torchrun the trainings are data-parallel, the batch sizes global, and rank 0 alone writes and prints).
@@ -32,5 +33,7 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

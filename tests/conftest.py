@@ -113,8 +113,14 @@ def collected(tmp_path_factory):
     from torchrl_dalir.data import Source, collect
 
     root = tmp_path_factory.mktemp("collected") / "reach"
-    sources = [Source("expert", 2), Source("expert_noisy", 2, noise_scale=0.3), Source("still", 1, policy=still_policy, expert=False)]
-    return collect(SHORT_REACH, root, sources, seed=1, gamma=0.9, num_points=64, num_workers=1, chunk_size=2, progress=False)
+    sources = [
+        Source("expert", 2),
+        Source("expert_noisy", 2, noise_scale=0.3),
+        Source("still", 1, policy=still_policy, expert=False),
+    ]
+    return collect(
+        SHORT_REACH, root, sources, seed=1, gamma=0.9, num_points=64, num_workers=1, chunk_size=2, progress=False
+    )
 
 
 @pytest.fixture(scope="session")
@@ -127,7 +133,11 @@ def trained_policy(collected, tmp_path_factory):
     (data / "reach").mkdir()
     (data / "reach" / "demos").symlink_to(collected.root)
     out = tmp_path_factory.mktemp("policies")
-    cfg = parse_config(PolicyTrainingConfig, ["preset=smoke", "task=reach", f"data={data}", f"out={out}", "progress=false"], POLICY_PRESETS)
+    cfg = parse_config(
+        PolicyTrainingConfig,
+        ["preset=smoke", "task=reach", f"data={data}", f"out={out}", "progress=false"],
+        POLICY_PRESETS,
+    )
     return cfg, train_policy(cfg)
 
 
@@ -144,7 +154,14 @@ def trained_world_model(collected, trained_policy, tmp_path_factory):
     out = tmp_path_factory.mktemp("world_models")
     cfg = parse_config(
         WorldModelTrainingConfig,
-        ["preset=smoke", "task=reach", f"data={data}", f"out={out}", f"policy_checkpoint={policy_path}", "progress=false"],
+        [
+            "preset=smoke",
+            "task=reach",
+            f"data={data}",
+            f"out={out}",
+            f"policy_checkpoint={policy_path}",
+            "progress=false",
+        ],
         WORLD_MODEL_PRESETS,
     )
     return cfg, train_world_model(cfg), policy_path

@@ -51,7 +51,9 @@ def test_make_env_refuses_non_positive_sizes(setting, value):
 
 def test_more_points_than_the_crop_holds_warns_with_the_distinct_count(monkeypatch):
     monkeypatch.setattr(gym_env, "_WARNED_REPEATS", set())
-    with pytest.warns(UserWarning, match=r"reach: the crop box holds (\d+) distinct points .* num_points=20000") as record:
+    with pytest.warns(
+        UserWarning, match=r"reach: the crop box holds (\d+) distinct points .* num_points=20000"
+    ) as record:
         env = make_env(SHORT_REACH, num_points=20000)  # (seeding resets: the first observation)
         cloud = env.reset()[keys.POINT_CLOUD]
     distinct = int(re.search(r"holds (\d+) distinct", str(record[0].message))[1])
@@ -86,7 +88,9 @@ def _policy(seed=0, **key_names):
 def _actor(policy, **kwargs):
     encoder = LatentEncoder.from_policy(policy)
     world_model = LatentWorldModel(encoder.latent_dim, 4, 8, hidden=32, layers=1, heads=2)
-    return RerankingActor(policy, encoder, world_model, TaskCompletionScorer(encoder.latent_dim, hidden=32), num_candidates=3, **kwargs)
+    return RerankingActor(
+        policy, encoder, world_model, TaskCompletionScorer(encoder.latent_dim, hidden=32), num_candidates=3, **kwargs
+    )
 
 
 def _observation(batch=2, points=16, cloud=None):
@@ -98,10 +102,22 @@ def _observation(batch=2, points=16, cloud=None):
 BAD_OBSERVATIONS = {
     "no points": (_observation(points=0), r"point_cloud \(2, 2, 0, 3\) holds no points"),
     "empty batch": (_observation(batch=0), r"no observation to act on: point_cloud is \(0, 2, 16, 3\), an empty batch"),
-    "NaN": (_observation(cloud=torch.full((2, 2, 16, 3), float("nan"))), r"point_cloud \(2, 2, 16, 3\) holds 192 NaN or infinite"),
-    "huge": (_observation(cloud=torch.full((2, 2, 16, 3), 1e30)), r"point_cloud \(2, 2, 16, 3\) lies far outside .* metres"),
-    "millimetres": (_observation(cloud=torch.rand(2, 2, 16, 3) * 1000), "lies far outside the points the policy was trained on"),
-    "integers": (_observation(cloud=torch.ones(2, 2, 16, 3, dtype=torch.long)), r"point_cloud \(2, 2, 16, 3\) is torch.int64: pass floating"),
+    "NaN": (
+        _observation(cloud=torch.full((2, 2, 16, 3), float("nan"))),
+        r"point_cloud \(2, 2, 16, 3\) holds 192 NaN or infinite",
+    ),
+    "huge": (
+        _observation(cloud=torch.full((2, 2, 16, 3), 1e30)),
+        r"point_cloud \(2, 2, 16, 3\) lies far outside .* metres",
+    ),
+    "millimetres": (
+        _observation(cloud=torch.rand(2, 2, 16, 3) * 1000),
+        "lies far outside the points the policy was trained on",
+    ),
+    "integers": (
+        _observation(cloud=torch.ones(2, 2, 16, 3, dtype=torch.long)),
+        r"point_cloud \(2, 2, 16, 3\) is torch.int64: pass floating",
+    ),
 }
 
 
@@ -164,7 +180,10 @@ def test_a_finite_observation_that_overflows_the_policy_is_refused_not_acted_on(
     module = {"policy": policy, "dalir": _actor(policy), "dropout policy": DropoutPolicy(policy)}[actor]
     observation = _observation()
     observation[keys.AGENT_POS] = torch.full((2, 2, 4), 1e30)
-    message = r"action_chunk \(\d+, 16, 4\) holds \d+ NaN or infinite values: .* overflowed the network: most likely its robot state \(agent_pos"
+    message = (
+        r"action_chunk \(\d+, 16, 4\) holds \d+ NaN or infinite values: .* overflowed the network: "
+        r"most likely its robot state \(agent_pos"
+    )
     with pytest.raises(ValueError, match=message):
         module(observation)
 
@@ -172,22 +191,36 @@ def test_a_finite_observation_that_overflows_the_policy_is_refused_not_acted_on(
 def test_a_policy_with_nan_weights_names_its_weights():
     policy = _policy()
     _nan_parameter(policy.unet)
-    with pytest.raises(ValueError, match=r"action_chunk \(2, 16, 4\) holds 128 NaN .* the policy's weights or normalizers hold NaN"):
+    with pytest.raises(
+        ValueError, match=r"action_chunk \(2, 16, 4\) holds 128 NaN .* the policy's weights or normalizers hold NaN"
+    ):
         policy(_observation())
 
 
 def test_dalir_refuses_nan_scores_instead_of_ranking_them():
     actor = _actor(_policy())
     _nan_parameter(actor.scorer)
-    with pytest.raises(ValueError, match=r"DALI-R's candidate_scores \(2, 1, 3\) holds 6 NaN or infinite values: .* world model"):
+    with pytest.raises(
+        ValueError, match=r"DALI-R's candidate_scores \(2, 1, 3\) holds 6 NaN or infinite values: .* world model"
+    ):
         actor(_observation())
 
 
 # -- checkpoints ---------------------------------------------------------------------------------
 def _save_policy(policy, path, task="reach"):
     """A policy checkpoint as ``train_policy`` writes it (the entries ``load_policy`` reads)."""
-    torch.save({"kind": "policy", "task": task, "policy_config": asdict(policy.config), "action_dim": policy.action_dim,
-                "state_dim": policy.state_dim, "num_points": 16, "policy_state": policy.state_dict()}, path)
+    torch.save(
+        {
+            "kind": "policy",
+            "task": task,
+            "policy_config": asdict(policy.config),
+            "action_dim": policy.action_dim,
+            "state_dim": policy.state_dim,
+            "num_points": 16,
+            "policy_state": policy.state_dict(),
+        },
+        path,
+    )
     return path
 
 
@@ -197,12 +230,23 @@ def _save_world_model(policy_path, path, digest=True):
     actor = _actor(policy)
     ensemble = ScorerEnsemble(actor.encoder.latent_dim, 16, 2)
     state = {
-        "kind": "world_model", "task": policy.task, "policy_checkpoint": str(policy_path), "policy_config": asdict(policy.config),
-        "action_dim": 4, "state_dim": 4, "world_model_args": dict(latent_dim=actor.encoder.latent_dim, action_dim=4, action_steps=8,
-                                                                  hidden=32, layers=1, heads=2),
-        "scorer_hidden": 32, "encoder_state": actor.encoder.state_dict(), "scorer_state": actor.scorer.state_dict(),
-        "world_model_state": actor.world_model.state_dict(), "ensemble_args": dict(latent_dim=actor.encoder.latent_dim, hidden=16, members=2),
-        "ensemble_state": ensemble.state_dict(), "metrics": {}, "held_out_trajectories": [],
+        "kind": "world_model",
+        "task": policy.task,
+        "policy_checkpoint": str(policy_path),
+        "policy_config": asdict(policy.config),
+        "action_dim": 4,
+        "state_dim": 4,
+        "world_model_args": dict(
+            latent_dim=actor.encoder.latent_dim, action_dim=4, action_steps=8, hidden=32, layers=1, heads=2
+        ),
+        "scorer_hidden": 32,
+        "encoder_state": actor.encoder.state_dict(),
+        "scorer_state": actor.scorer.state_dict(),
+        "world_model_state": actor.world_model.state_dict(),
+        "ensemble_args": dict(latent_dim=actor.encoder.latent_dim, hidden=16, members=2),
+        "ensemble_state": ensemble.state_dict(),
+        "metrics": {},
+        "held_out_trajectories": [],
     }
     if digest:
         state["policy_digest"] = weights_digest(policy)
@@ -214,16 +258,29 @@ def test_a_checkpoint_missing_an_entry_names_the_file_and_the_entry(tmp_path):
     path = _save_policy(_policy(), tmp_path / "policy.pt")
     state = torch.load(path, weights_only=True)
     torch.save({k: v for k, v in state.items() if k != "num_points"}, tmp_path / "no_size.pt")
-    with pytest.raises(ValueError, match=re.escape(f"{tmp_path / 'no_size.pt'} is a damaged or incomplete policy checkpoint: it has no 'num_points' entry")):
+    with pytest.raises(
+        ValueError,
+        match=re.escape(
+            f"{tmp_path / 'no_size.pt'} is a damaged or incomplete policy checkpoint: it has no 'num_points' entry"
+        ),
+    ):
         load_policy(tmp_path / "no_size.pt")
     weights = dict(state["policy_state"])
     weights.pop(next(iter(weights)))
     torch.save({**state, "policy_state": weights}, tmp_path / "no_weight.pt")
-    with pytest.raises(ValueError, match=re.escape(f"{tmp_path / 'no_weight.pt'}: the weights in 'policy_state' do not fit")):
+    with pytest.raises(
+        ValueError, match=re.escape(f"{tmp_path / 'no_weight.pt'}: the weights in 'policy_state' do not fit")
+    ):
         load_policy(tmp_path / "no_weight.pt")
     wm = torch.load(_save_world_model(path, tmp_path / "world_model.pt"), weights_only=True)
     torch.save({k: v for k, v in wm.items() if k not in ("scorer_state", "metrics")}, tmp_path / "no_scorer.pt")
-    with pytest.raises(ValueError, match="no_scorer.pt is a damaged or incomplete world_model checkpoint: it has no 'scorer_state', 'metrics' entries"):
+    with pytest.raises(
+        ValueError,
+        match=(
+            "no_scorer.pt is a damaged or incomplete world_model checkpoint: "
+            "it has no 'scorer_state', 'metrics' entries"
+        ),
+    ):
         load_world_model(tmp_path / "no_scorer.pt")
 
 
@@ -236,8 +293,16 @@ def _fit(path, num_steps=2):
         def forward(self, batch):
             return TensorDict({"loss": model(batch["x"]).pow(2).mean()}, [])
 
-    return fit(Loss(), model, lambda g: TensorDict({"x": torch.rand(4, 2, generator=g)}, [4]), num_steps, OptimConfig(warmup_steps=0),
-               path, lambda ema: {}, progress=False)
+    return fit(
+        Loss(),
+        model,
+        lambda g: TensorDict({"x": torch.rand(4, 2, generator=g)}, [4]),
+        num_steps,
+        OptimConfig(warmup_steps=0),
+        path,
+        lambda ema: {},
+        progress=False,
+    )
 
 
 def test_a_damaged_checkpoint_at_the_resume_path_is_named_with_what_to_do(tmp_path):
@@ -245,15 +310,24 @@ def test_a_damaged_checkpoint_at_the_resume_path_is_named_with_what_to_do(tmp_pa
     _fit(path)
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
-    with pytest.raises(ValueError, match=f"cannot resume training: {re.escape(str(path))} is not a torchrl_dalir training checkpoint, "
-                                         f"or is truncated.*delete {re.escape(str(path))}"):
+    with pytest.raises(
+        ValueError,
+        match=f"cannot resume training: {re.escape(str(path))} is not a torchrl_dalir training checkpoint, "
+        f"or is truncated.*delete {re.escape(str(path))}",
+    ):
         _fit(path, num_steps=4)
     path.unlink()
     _fit(path)
     state = torch.load(path, weights_only=True)
     del state["optimizer"]
     torch.save(state, path)
-    with pytest.raises(ValueError, match="cannot resume training: .*checkpoint.pt is a damaged or incomplete training checkpoint: it has no 'optimizer'"):
+    with pytest.raises(
+        ValueError,
+        match=(
+            "cannot resume training: .*checkpoint.pt is a damaged or incomplete training checkpoint: "
+            "it has no 'optimizer'"
+        ),
+    ):
         _fit(path, num_steps=4)
     with pytest.raises(ValueError, match="num_steps must be at least 0, got -1"):
         _fit(tmp_path / "other.pt", num_steps=-1)  # an untrained checkpoint would count as finished
@@ -298,7 +372,9 @@ def _example_config(name):
 )
 def test_bad_settings_are_refused_when_the_configuration_is_read(job, argv, message):
     config, presets = {
-        "collection": (CollectionConfig, COLLECTION_PRESETS), "main": (PipelineConfig, PRESETS), "policy": (PolicyTrainingConfig, POLICY_PRESETS),
+        "collection": (CollectionConfig, COLLECTION_PRESETS),
+        "main": (PipelineConfig, PRESETS),
+        "policy": (PolicyTrainingConfig, POLICY_PRESETS),
     }.get(job, (None, None))
     if config is None:
         config = _example_config(job)
@@ -330,9 +406,14 @@ def test_a_bad_output_folder_is_refused_before_any_episode(script, tmp_path, mon
 
     (tmp_path / "file").write_text("")
     for module, name in ((compare, "evaluate_checkpoints"), (calibration, "calibrate")):
-        monkeypatch.setattr(module, name, lambda *a, **k: pytest.fail("episodes ran before the output folder was checked"))
+        monkeypatch.setattr(
+            module, name, lambda *a, **k: pytest.fail("episodes ran before the output folder was checked")
+        )
     monkeypatch.setattr(sys, "argv", [f"{script}.py", f"out={tmp_path / 'file' / 'results'}"])
-    with pytest.raises(ValueError, match=re.escape(f"cannot write results to the folder {tmp_path / 'file' / 'results'}") + ".*pass out="):
+    with pytest.raises(
+        ValueError,
+        match=re.escape(f"cannot write results to the folder {tmp_path / 'file' / 'results'}") + ".*pass out=",
+    ):
         runpy.run_path(str(EXAMPLES / f"{script}.py"), run_name="__main__")
 
 
@@ -343,7 +424,10 @@ def test_a_world_model_is_refused_with_another_policy_of_the_same_task(tmp_path,
     wm = _save_world_model(policy_a, tmp_path / "world_model_a.pt")
     assert RerankingActor.from_checkpoints(policy_a, wm, num_candidates=2).policy.checkpoint == str(policy_a)
     assert load_world_model(wm).policy_digest == weights_digest(load_policy(policy_a))
-    both = f"the world model at {re.escape(str(wm))} was trained on top of the policy at {re.escape(str(policy_a))}, not on the policy at {re.escape(str(policy_b))}"
+    both = (
+        f"the world model at {re.escape(str(wm))} was trained on top of the policy at {re.escape(str(policy_a))}, "
+        f"not on the policy at {re.escape(str(policy_b))}"
+    )
     with pytest.raises(ValueError, match=both):
         RerankingActor.from_checkpoints(policy_b, wm)
     monkeypatch.setattr(compare, "evaluate", lambda *a, **k: pytest.fail("an episode ran"))

@@ -18,7 +18,9 @@ from torchrl_dalir.training.ranking import RankingTrainingConfig, train_ranking_
 def test_ranking_loss_exact_values_and_only_split_decisions_rank():
     loss = WithinStateRankingLoss(torch.nn.Identity(), outcome_weight=0.5)
     logits = torch.tensor([[0.0, 0.0], [3.0, -1.0]])  # the second decision does not split: no ranking term
-    out = loss(TensorDict(candidate_features=logits, success=torch.tensor([[True, False], [True, True]]), batch_size=[2]))
+    out = loss(
+        TensorDict(candidate_features=logits, success=torch.tensor([[True, False], [True, True]]), batch_size=[2])
+    )
     assert math.isclose(out["loss_ranking"].item(), math.log(2), rel_tol=1e-6)
     bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, torch.tensor([[1.0, 0.0], [1.0, 1.0]]))
     assert math.isclose(out["loss_outcome"].item(), 0.5 * bce.item(), rel_tol=1e-6)
@@ -45,15 +47,22 @@ def test_ranking_loss_prefers_the_winner_on_a_toy_decision():
 
 def _policy():
     torch.manual_seed(0)
-    policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4,
-                         task="reach", num_points=40)
+    policy = make_policy(
+        PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]),
+        action_dim=4,
+        state_dim=4,
+        task="reach",
+        num_points=40,
+    )
     policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 2 - 1)
     return policy
 
 
 def test_branched_stage_resumes_to_identical_rows_after_a_kill(tmp_path, monkeypatch):
     policy = _policy()
-    settings = dict(reranking=RerankingConfig(3, "clean"), task=SHORT_REACH, episodes=2, stride=4, seed=7, progress=False)
+    settings = dict(
+        reranking=RerankingConfig(3, "clean"), task=SHORT_REACH, episodes=2, stride=4, seed=7, progress=False
+    )
     reference = collect_branched(policy, tmp_path / "whole", **settings)
     assert len(reference) == 2 * 3  # 80 steps: decisions 0, 4 and 8 of each episode
     assert reference.rows["action_chunk"].shape == (6, 3, 16, 4) and reference.rows["success"].shape == (6, 3)
@@ -63,10 +72,12 @@ def test_branched_stage_resumes_to_identical_rows_after_a_kill(tmp_path, monkeyp
     assert (reference.rows["steps_to_success"][failed] == -1).all()
 
     memmap = branched._memmap_atomically
+
     def killed(rows, directory):
         if directory.name == "00001":
             raise KeyboardInterrupt
         memmap(rows, directory)
+
     monkeypatch.setattr(branched, "_memmap_atomically", killed)
     with pytest.raises(KeyboardInterrupt):
         collect_branched(policy, tmp_path / "killed", **settings)
@@ -86,8 +97,16 @@ def test_ranking_scorer_trains_and_reports_held_out_auc():
     chunks = torch.rand(80, 4, 16, 4, generator=g) * 2 - 1
     push = chunks[:, :, 1:9, 0].mean(-1)
     success = push > push.median(dim=1, keepdim=True).values
-    rows = TensorDict({"point_cloud": torch.rand(80, 2, 40, 3, generator=g), "agent_pos": torch.rand(80, 2, 4, generator=g),
-                       "action_chunk": chunks, "success": success, "reset_seed": torch.arange(80) // 4}, [80])
+    rows = TensorDict(
+        {
+            "point_cloud": torch.rand(80, 2, 40, 3, generator=g),
+            "agent_pos": torch.rand(80, 2, 4, generator=g),
+            "action_chunk": chunks,
+            "success": success,
+            "reset_seed": torch.arange(80) // 4,
+        },
+        [80],
+    )
     scorer, metrics = train_ranking_scorer(rows, policy, RankingTrainingConfig(steps=300, hidden=32, seed=0))
     assert metrics["held_out_split_decisions"] == 24 and metrics["train_split_decisions"] == 56
     assert metrics["loss_end"]["loss_ranking"] < metrics["loss_start"]["loss_ranking"]
@@ -100,9 +119,19 @@ def test_script_collects_trains_both_variants_and_reruns_from_the_stored_data(tr
     from pathlib import Path
 
     _, checkpoint = trained_policy
-    main = runpy.run_path(str(Path(__file__).resolve().parents[1] / "examples" / "paper" / "branched_ranking.py"))["main"]
-    argv = [f"policy={checkpoint}", "episodes=2", "num_candidates=2", "stride=8", "training.steps=5", f"out={tmp_path}",
-            "progress=false", f"json={tmp_path / 'ranking.json'}"]
+    main = runpy.run_path(str(Path(__file__).resolve().parents[1] / "examples" / "paper" / "branched_ranking.py"))[
+        "main"
+    ]
+    argv = [
+        f"policy={checkpoint}",
+        "episodes=2",
+        "num_candidates=2",
+        "stride=8",
+        "training.steps=5",
+        f"out={tmp_path}",
+        "progress=false",
+        f"json={tmp_path / 'ranking.json'}",
+    ]
     first = main(argv)
     assert set(first["variants"]) == {"ranking", "outcome"}
     assert 2 <= first["decisions"] <= 2 * 4  # every 8th decision of 2 episodes of at most 200 steps: 0, 8, 16, 24

@@ -72,11 +72,23 @@ def test_oracle_choice_prefers_the_clean_candidate_then_the_earliest_success():
 def test_oracle_executes_the_candidate_whose_branch_succeeds(exhaustive):
     # Standing still fails. Acting with k for 8 steps reaches x = 8k: candidates 3 (x = 21 after 7 steps)
     # and 4 (x = 20 after 5 steps) succeed from the first decision, 1 and 2 do not and then stand still.
-    record = ceiling_episode(LineEnv(), ConstantPolicy(), {"index": IndexGenerator()}, episode_seed=0, num_candidates=5,
-                             exhaustive=exhaustive)
+    record = ceiling_episode(
+        LineEnv(),
+        ConstantPolicy(),
+        {"index": IndexGenerator()},
+        episode_seed=0,
+        num_candidates=5,
+        exhaustive=exhaustive,
+    )
     assert (record["base_success"], record["base_steps"], record["decisions"]) == (False, 40, 5)
     oracle = record["generators"]["index"]
-    assert (oracle["success"], oracle["decision"], oracle["candidate"], oracle["steps"], oracle["winners"]) == (True, 0, 4, 5, 2)
+    assert (oracle["success"], oracle["decision"], oracle["candidate"], oracle["steps"], oracle["winners"]) == (
+        True,
+        0,
+        4,
+        5,
+        2,
+    )
     if exhaustive:  # every decision is branched; from decision d, x = 8k after the candidate's 8 steps
         assert oracle["branches"] == 5 * 4
         assert oracle["branch_successes"][0] == [False, False, False, True, True]
@@ -92,9 +104,13 @@ def test_oracle_executes_the_candidate_whose_branch_succeeds(exhaustive):
 def test_a_stride_branches_every_stride_th_decision_only():
     # Decisions 0, 2 and 4 of the 5 are branched; candidate 3 fixes the episode from the first one.
     policy, generators = ConstantPolicy(), {"index": IndexGenerator()}
-    oracle = ceiling_episode(LineEnv(), policy, generators, episode_seed=0, num_candidates=4, stride=2)["generators"]["index"]
+    oracle = ceiling_episode(LineEnv(), policy, generators, episode_seed=0, num_candidates=4, stride=2)["generators"][
+        "index"
+    ]
     assert (oracle["success"], oracle["decision"], oracle["candidate"], oracle["steps"]) == (True, 0, 3, 7)
-    exhaustive = ceiling_episode(LineEnv(), policy, generators, episode_seed=0, num_candidates=4, stride=2, exhaustive=True)
+    exhaustive = ceiling_episode(
+        LineEnv(), policy, generators, episode_seed=0, num_candidates=4, stride=2, exhaustive=True
+    )
     assert len(exhaustive["generators"]["index"]["branch_successes"]) == 3  # decisions 0, 2 and 4 of 5
 
 
@@ -107,9 +123,14 @@ def test_no_winning_candidate_keeps_the_base_policy():
 
 def test_summary_exact_values():
     def record(base, oracle, decision=None, winners=None):
-        return {"base_success": base, "generators": {"g": {"success": oracle, "decision": decision, "winners": winners, "branches": 7}}}
+        return {
+            "base_success": base,
+            "generators": {"g": {"success": oracle, "decision": decision, "winners": winners, "branches": 7}},
+        }
 
-    summary = summarize_ceiling([record(True, True, 0), record(False, True, 4, 2), record(False, True, 2, 4), record(False, False)])
+    summary = summarize_ceiling(
+        [record(True, True, 0), record(False, True, 4, 2), record(False, True, 2, 4), record(False, False)]
+    )
     assert summary["base_success_rate"] == 0.25
     entry = summary["generators"]["g"]
     assert (entry["oracle_success_rate"], entry["failures_fixed"], entry["failures"]) == (0.75, 2, 3)
@@ -120,8 +141,13 @@ def _tiny_policy():
     from torchrl_dalir.modules import PolicyConfig, make_policy
 
     torch.manual_seed(0)
-    policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4,
-                         task="reach", num_points=40)
+    policy = make_policy(
+        PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]),
+        action_dim=4,
+        state_dim=4,
+        task="reach",
+        num_points=40,
+    )
     policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 2 - 1)
     return policy
 
@@ -135,8 +161,9 @@ def test_set_state_replays_the_unbranched_continuation_bit_for_bit():
     try:
         first, second = [], []
         observation, _ = env.reset(seed=seed)
-        outcome = continue_base(env, policy, [observation], seed, 0, "cpu",
-                                visit=lambda d, obs: first.append((env.get_state(), obs)))
+        outcome = continue_base(
+            env, policy, [observation], seed, 0, "cpu", visit=lambda d, obs: first.append((env.get_state(), obs))
+        )
         assert len(first) == 10  # 80 steps, a decision every 8
         state, observations = first[3]
         env.set_state(state)
@@ -155,8 +182,9 @@ def test_ceiling_on_the_simulator_resumes_and_reports_every_generator():
     policy = _tiny_policy()
     generators = {name: candidate_generator(RerankingConfig(2, name)) for name in ("dropout", "clean")}
     seen = []
-    records = candidate_ceiling(policy, SHORT_REACH, generators, episodes=2, num_candidates=2, done=[0],
-                                on_episode=seen.append, progress=False)
+    records = candidate_ceiling(
+        policy, SHORT_REACH, generators, episodes=2, num_candidates=2, done=[0], on_episode=seen.append, progress=False
+    )
     assert [r["episode"] for r in records] == [1] and seen == records
     outcome = records[0]["generators"]
     assert set(outcome) == {"dropout", "clean"}
@@ -172,8 +200,14 @@ SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "paper" / "candidate
 def test_script_resumes_after_a_torn_line_and_summarises_the_same(trained_policy, tmp_path):
     _, checkpoint = trained_policy
     main = runpy.run_path(str(SCRIPT))["main"]
-    argv = [f"policies=[{checkpoint}]", "episodes=2", "num_candidates=2", f"out={tmp_path}", "progress=false",
-            f"json={tmp_path / 'ceiling.json'}"]
+    argv = [
+        f"policies=[{checkpoint}]",
+        "episodes=2",
+        "num_candidates=2",
+        f"out={tmp_path}",
+        "progress=false",
+        f"json={tmp_path / 'ceiling.json'}",
+    ]
     first = main(argv)
     episodes = tmp_path / "reach" / f"{Path(checkpoint).parent.name}.jsonl"
     lines = episodes.read_text().splitlines()

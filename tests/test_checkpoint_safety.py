@@ -49,7 +49,9 @@ def test_the_planted_entry_runs_code_when_unpickled(trained_policy, tmp_path):
     assert marker.exists()
 
 
-def test_every_loader_refuses_a_planted_entry_and_never_runs_it(trained_policy, trained_world_model, tmp_path, monkeypatch):
+def test_every_loader_refuses_a_planted_entry_and_never_runs_it(
+    trained_policy, trained_world_model, tmp_path, monkeypatch
+):
     cfg, policy_path = trained_policy
     _, wm_path, _ = trained_world_model
     policy, policy_marker = plant(policy_path, tmp_path / "policy.pt")
@@ -65,7 +67,9 @@ def test_every_loader_refuses_a_planted_entry_and_never_runs_it(trained_policy, 
         "PenExpertPolicy.load": lambda: PenExpertPolicy.load(expert),
     }
     for name, load in refusals.items():
-        with pytest.raises(UnsafeFileError, match=f"refused to load {re.escape(str(tmp_path))}.*pickled io.open") as error:
+        with pytest.raises(
+            UnsafeFileError, match=f"refused to load {re.escape(str(tmp_path))}.*pickled io.open"
+        ) as error:
             load()
         assert "weights_only=False" not in str(error.value), name  # torch's advice to run the file is not passed on
     # resuming a training run from a planted checkpoint.pt
@@ -75,10 +79,14 @@ def test_every_loader_refuses_a_planted_entry_and_never_runs_it(trained_policy, 
     with pytest.raises(UnsafeFileError, match="checkpoint.pt"):
         train_policy(resumed)
     # examples/evaluate.py
-    monkeypatch.setattr(sys, "argv", ["evaluate.py", f"policy_checkpoint={policy}", f"world_model={wm_path}", f"out={tmp_path}"])
+    monkeypatch.setattr(
+        sys, "argv", ["evaluate.py", f"policy_checkpoint={policy}", f"world_model={wm_path}", f"out={tmp_path}"]
+    )
     with pytest.raises(UnsafeFileError, match="policy.pt"):
         runpy.run_path(str(EXAMPLES / "evaluate.py"), run_name="__main__")
-    assert not any(marker.exists() for marker in (policy_marker, wm_marker, expert_marker, resumed.run_dir() / "checkpoint.marker"))
+    assert not any(
+        marker.exists() for marker in (policy_marker, wm_marker, expert_marker, resumed.run_dir() / "checkpoint.marker")
+    )
 
 
 def test_an_object_of_an_older_format_asks_to_retrain(trained_world_model, tmp_path):
@@ -92,7 +100,11 @@ def test_an_object_of_an_older_format_asks_to_retrain(trained_world_model, tmp_p
 def test_a_file_that_is_no_checkpoint_is_named_in_the_error(trained_policy, tmp_path):
     _, policy_path = trained_policy
     data = policy_path.read_bytes()
-    files = {"truncated.pt": data[: len(data) // 2], "empty.pt": b"", "meta.json": json.dumps({"kind": "policy"}).encode()}
+    files = {
+        "truncated.pt": data[: len(data) // 2],
+        "empty.pt": b"",
+        "meta.json": json.dumps({"kind": "policy"}).encode(),
+    }
     for name, content in files.items():
         path = tmp_path / name
         path.write_bytes(content)
@@ -101,7 +113,9 @@ def test_a_file_that_is_no_checkpoint_is_named_in_the_error(trained_policy, tmp_
         assert not isinstance(error.value, UnsafeFileError), name
         with pytest.raises(ValueError, match=f"{re.escape(str(path))} is not a torch file, or is truncated: .+"):
             training_finished(path)
-        with pytest.raises(ValueError, match=f"{re.escape(str(path))} is not a torchrl_dalir policy checkpoint, or is truncated"):
+        with pytest.raises(
+            ValueError, match=f"{re.escape(str(path))} is not a torchrl_dalir policy checkpoint, or is truncated"
+        ):
             load_policy(path)
 
 

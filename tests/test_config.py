@@ -16,7 +16,11 @@ from torchrl_dalir.pipeline import PRESETS, PipelineConfig
     ("argv", "error", "message"),
     [
         (["epochz=3"], ValueError, "bad setting 'epochz'.*the settings here are task, preset, seed"),
-        (["policy_training.model.foo=1"], ValueError, "'policy_training.model.foo'.*settings of 'policy_training.model' are kind, horizon"),
+        (
+            ["policy_training.model.foo=1"],
+            ValueError,
+            "'policy_training.model.foo'.*settings of 'policy_training.model' are kind, horizon",
+        ),
         (["eval_episodes=ten"], ValueError, "bad setting 'eval_episodes': Value 'ten'"),
         (["preset=gpu"], ValueError, r"unknown preset 'gpu'; choose one of \['cpu', 'paper', 'smoke'\]"),
         (["policy=xyz"], ValueError, r"policy must be one of \['dp', 'fm'\], got 'xyz'"),
@@ -30,7 +34,11 @@ def test_bad_settings_fail_with_a_clear_message(argv, error, message):
 
 
 def test_good_settings_reach_the_nested_stages():
-    cfg = parse_config(PipelineConfig, ["task=stick-pull", "policy=dp", "preset=smoke", "seed=2", "policy_training.model.ddim_steps=3"], PRESETS)
+    cfg = parse_config(
+        PipelineConfig,
+        ["task=stick-pull", "policy=dp", "preset=smoke", "seed=2", "policy_training.model.ddim_steps=3"],
+        PRESETS,
+    )
     assert (cfg.policy_training.task, cfg.policy_training.policy, cfg.policy_training.seed) == ("stick-pull", "dp", 2)
     assert cfg.policy_training.model.ddim_steps == 3 and cfg.collection.mixed_name == "mixed_dp_seed2"
     with pytest.raises(ValueError, match="stage must be one of"):
@@ -52,11 +60,19 @@ def test_load_checkpoint_explains_directories_and_foreign_files(tmp_path):
 
 
 def test_the_main_job_refuses_stage_settings_it_would_replace():
-    with pytest.raises(ValueError, match="policy_training.device='cuda' would be replaced by the main job's 'cpu', which it derives from its own device"):
+    with pytest.raises(
+        ValueError,
+        match=(
+            "policy_training.device='cuda' would be replaced by the main job's 'cpu', "
+            "which it derives from its own device"
+        ),
+    ):
         parse_config(PipelineConfig, ["policy_training.device=cuda"], PRESETS)
     with pytest.raises(ValueError, match="world_model.policy_checkpoint='/tmp/other.pt' .* out, policy and seed"):
         parse_config(PipelineConfig, ["world_model.policy_checkpoint=/tmp/other.pt"], PRESETS)
-    cfg = parse_config(PipelineConfig, ["device=cuda", "task=shelf-place", "seed=2", "out=/tmp/x", "policy=dp"], PRESETS)
+    cfg = parse_config(
+        PipelineConfig, ["device=cuda", "task=shelf-place", "seed=2", "out=/tmp/x", "policy=dp"], PRESETS
+    )
     assert (cfg.policy_training.device, cfg.world_model.device) == ("cuda", "cuda")
     assert cfg.world_model.policy_checkpoint == "/tmp/x/policies/shelf-place/dp_seed2/checkpoint.pt"
     assert cfg.collection.mixed_name == cfg.world_model.mixed_name == "mixed_dp_seed2"

@@ -49,7 +49,9 @@ def test_dataset_reloads_identical_without_collecting(collected, monkeypatch):
     monkeypatch.setattr(collect_module, "_collect_chunk", lambda *a, **k: pytest.fail("collected again"))
     sources = [Source(**{k: v for k, v in s.items()}) for s in collected.meta.sources]
     sources[2].policy = still_policy
-    reloaded = collect(SHORT_REACH, collected.root, sources, seed=1, gamma=0.9, num_points=64, num_workers=1, chunk_size=2)
+    reloaded = collect(
+        SHORT_REACH, collected.root, sources, seed=1, gamma=0.9, num_points=64, num_workers=1, chunk_size=2
+    )
     assert (reloaded.rows == collected.rows).all()
 
 
@@ -109,8 +111,10 @@ def test_interrupted_base_policy_collection_resumes_to_the_same_data(trained_pol
     from torchrl_dalir.training.policy import exploration_actor, policy_actor
 
     path = str(trained_policy[1])
-    sources = [Source("exploration", 1, policy=partial(exploration_actor, path), expert=False, history=2),
-               Source("base_policy", 1, policy=partial(policy_actor, path), expert=False, history=2)]
+    sources = [
+        Source("exploration", 1, policy=partial(exploration_actor, path), expert=False, history=2),
+        Source("base_policy", 1, policy=partial(policy_actor, path), expert=False, history=2),
+    ]
     kwargs = dict(seed=4, num_points=64, num_workers=1, chunk_size=1, progress=False)
     torch.manual_seed(0)
     reference = collect(TINY_REACH, tmp_path / "reference", sources, **kwargs)
@@ -134,7 +138,14 @@ class WildPolicy(torch.nn.Module):
 
 
 def test_stored_actions_are_the_executed_ones(tmp_path):
-    dataset = collect(TINY_REACH, tmp_path, [Source("wild", 1, policy=WildPolicy, expert=False)], num_points=32, num_workers=1, progress=False)
+    dataset = collect(
+        TINY_REACH,
+        tmp_path,
+        [Source("wild", 1, policy=WildPolicy, expert=False)],
+        num_points=32,
+        num_workers=1,
+        progress=False,
+    )
     acting = ~dataset.rows[keys.IS_FINAL]
     assert (dataset.rows[keys.ACTION][acting] == torch.tensor([1.0, -1.0, 1.0, -1.0])).all()
 
@@ -144,7 +155,14 @@ def _synthetic_dataset(root, lengths=(3, 4)):
     torch.manual_seed(0)
     writer = DatasetWriter(root, DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[]))
     for chunk, length in enumerate(lengths):
-        rows = trajectory_rows(synthetic_trajectory(length, True), trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.5)
+        rows = trajectory_rows(
+            synthetic_trajectory(length, True),
+            trajectory_id=0,
+            source=0,
+            noise_scale=0.0,
+            expert_source=True,
+            gamma=0.5,
+        )
         writer.write_chunk(chunk, rows)
     return writer
 
@@ -153,10 +171,16 @@ def _sizes(root):
     return {path: path.stat().st_size for path in sorted(root.rglob("*")) if path.is_file()}
 
 
-@pytest.mark.parametrize("damage", ["truncated column", "deleted column", "half-written meta.json", "invalid rows meta.json"])
+@pytest.mark.parametrize(
+    "damage", ["truncated column", "deleted column", "half-written meta.json", "invalid rows meta.json"]
+)
 def test_a_damaged_dataset_is_refused_naming_the_file_and_left_unchanged(tmp_path, damage):
     _synthetic_dataset(tmp_path).finalize()
-    column, meta, rows_meta = tmp_path / "rows" / "point_cloud.memmap", tmp_path / "meta.json", tmp_path / "rows" / "meta.json"
+    column, meta, rows_meta = (
+        tmp_path / "rows" / "point_cloud.memmap",
+        tmp_path / "meta.json",
+        tmp_path / "rows" / "meta.json",
+    )
     if damage == "truncated column":
         column.write_bytes(column.read_bytes()[: column.stat().st_size // 2])
         damaged, error = column, ValueError
@@ -180,7 +204,9 @@ def test_a_loaded_dataset_is_mapped_read_only(tmp_path):
     column = tmp_path / "rows" / "action.memmap"
     before = column.read_bytes()
     dataset.rows[keys.ACTION] += 1  # stays in memory
-    assert column.read_bytes() == before and torch.equal(TrajectoryDataset.load(tmp_path).rows[keys.ACTION] + 1, dataset.rows[keys.ACTION])
+    assert column.read_bytes() == before and torch.equal(
+        TrajectoryDataset.load(tmp_path).rows[keys.ACTION] + 1, dataset.rows[keys.ACTION]
+    )
 
 
 def test_a_crash_before_the_complete_mark_resumes_to_the_complete_dataset(tmp_path):
@@ -215,7 +241,9 @@ def test_a_dataset_seeded_per_worker_loads_but_is_not_resumed(tmp_path):
     _synthetic_dataset(tmp_path / "unfinished")
     _without_seeding(tmp_path / "unfinished")
     with pytest.raises(ValueError, match="older version of the library, which seeded each worker"):
-        DatasetWriter(tmp_path / "unfinished", DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[]))
+        DatasetWriter(
+            tmp_path / "unfinished", DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[])
+        )
 
 
 def test_writer_finalizes_in_chunk_order(tmp_path):
@@ -223,7 +251,14 @@ def test_writer_finalizes_in_chunk_order(tmp_path):
     writer = DatasetWriter(tmp_path, meta)
     written = {}
     for chunk in (1, 0):  # written out of order
-        written[chunk] = trajectory_rows(synthetic_trajectory(3 + chunk, True), trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.5)
+        written[chunk] = trajectory_rows(
+            synthetic_trajectory(3 + chunk, True),
+            trajectory_id=0,
+            source=0,
+            noise_scale=0.0,
+            expert_source=True,
+            gamma=0.5,
+        )
         writer.write_chunk(chunk, written[chunk])
     dataset = writer.finalize()
     assert dataset.lengths.tolist() == [4, 5]
@@ -252,4 +287,6 @@ def test_two_worker_collection_equals_one_worker_and_keeps_the_thread_count(tmp_
     assert len(torch.unique(first_states, dim=0)) == 4
     one = collect(SHORT_REACH, tmp_path / "one", sources, num_workers=1, **kwargs)
     assert (one.rows == dataset.rows).all()
-    assert one.meta.shards[0]["reset_seeds"] == dataset.meta.shards[0]["reset_seeds"] == [3_000_000 + i for i in range(4)]
+    assert (
+        one.meta.shards[0]["reset_seeds"] == dataset.meta.shards[0]["reset_seeds"] == [3_000_000 + i for i in range(4)]
+    )

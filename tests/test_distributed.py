@@ -79,15 +79,27 @@ def _train(path: Path, noise: float = 0.0, stop_at: int | None = None) -> None:
         return DATA[torch.randint(len(DATA), (BATCH,), generator=generator)]
 
     try:
-        fit(loss, model, next_batch, STEPS, OPTIM, path, lambda ema: {"rows_seen": loss.rows_seen}, seed=3,
-            checkpoint_every=3, progress=False)
+        fit(
+            loss,
+            model,
+            next_batch,
+            STEPS,
+            OPTIM,
+            path,
+            lambda ema: {"rows_seen": loss.rows_seen},
+            seed=3,
+            checkpoint_every=3,
+            progress=False,
+        )
     except Interrupted:
         pass
 
 
 def _two_rank_runs(rank: int, port: int, folder: Path) -> None:
     """One of two gloo processes, joined as torchrun would join them: every 2-rank training of the tests."""
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE="2")
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE="2"
+    )
     torch.set_num_threads(1)
     distributed.setup("cpu")
     _train(folder / "deterministic.pt")
@@ -138,21 +150,43 @@ def _smoke_demos(root: Path) -> Path:
         t = np.linspace(0, 1, 20, dtype=np.float32)[:, None]
         offset = rng.uniform(-1, 1, (1, 4)).astype(np.float32)
         cloud = rng.normal(size=(20, 64, 3)).astype(np.float32) + t[:, :, None]
-        episodes.append({"point_cloud": cloud, "state": np.concatenate([t, offset.repeat(20, 0)], 1),
-                         "action": np.sin(3 * t + np.arange(4, dtype=np.float32))})
+        episodes.append(
+            {
+                "point_cloud": cloud,
+                "state": np.concatenate([t, offset.repeat(20, 0)], 1),
+                "action": np.sin(3 * t + np.arange(4, dtype=np.float32)),
+            }
+        )
     from torchrl_dalir.data import import_dp3_zarr, write_dp3_zarr
 
-    import_dp3_zarr(write_dp3_zarr(root / "store.zarr", episodes), root / "data" / "reach" / "demos", task="reach", num_points=64)
+    import_dp3_zarr(
+        write_dp3_zarr(root / "store.zarr", episodes), root / "data" / "reach" / "demos", task="reach", num_points=64
+    )
     return root / "data"
 
 
 def test_torchrun_two_processes_train_a_smoke_policy(tmp_path):
     pytest.importorskip("zarr")
     data, out = _smoke_demos(tmp_path), tmp_path / "out"
-    command = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", f"--master_port={_free_port()}",
-               str(REPO / "examples" / "train_policy.py"), "preset=smoke", "task=reach", f"data={data}", f"out={out}",
-               "progress=false", "log_every=1"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node=2",
+        f"--master_port={_free_port()}",
+        str(REPO / "examples" / "train_policy.py"),
+        "preset=smoke",
+        "task=reach",
+        f"data={data}",
+        f"out={out}",
+        "progress=false",
+        "log_every=1",
+    ]
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+    }
     done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.count("trained fm on reach") == 1  # only rank 0 reports
@@ -162,7 +196,9 @@ def test_torchrun_two_processes_train_a_smoke_policy(tmp_path):
     policy = load_policy(run / "checkpoint.pt", task="reach")
     assert weights_digest(policy) == weights_digest(load_policy(run / "checkpoint.pt", task="reach"))
     [log_dir] = (run / "logs").iterdir()  # one logger: rank 0's
-    losses = [float(line.split(",")[1]) for line in (log_dir / "scalars" / "loss_flow_matching.csv").read_text().split()]
+    losses = [
+        float(line.split(",")[1]) for line in (log_dir / "scalars" / "loss_flow_matching.csv").read_text().split()
+    ]
     assert len(losses) == 30 and np.mean(losses[-10:]) < 0.85 * np.mean(losses[:3]), losses  # 1.73 -> 1.33 here
 
 

@@ -117,7 +117,9 @@ def test_reset_replays_the_same_actor_object(env):
     actor = receding_horizon(_dalir())
 
     def run(actor=actor):
-        return env.rollout(16, actor, auto_reset=False, tensordict=env.reset(seed=5), break_when_any_done=False)[keys.ACTION]
+        return env.rollout(16, actor, auto_reset=False, tensordict=env.reset(seed=5), break_when_any_done=False)[
+            keys.ACTION
+        ]
 
     first, second = run(), run()
     assert not torch.equal(first, second)  # its generator went on
@@ -176,25 +178,44 @@ def test_an_env_the_policy_was_not_trained_for_is_refused_with_a_clear_message(e
     with pytest.raises(ValueError, match="2-step history"):
         receding_horizon(dalir, env=no_history)
     no_history.close()
-    batch_without_history = TensorDict({keys.POINT_CLOUD: torch.rand(2, POINTS, 3), keys.AGENT_POS: torch.rand(2, 4)}, [2])
+    batch_without_history = TensorDict(
+        {keys.POINT_CLOUD: torch.rand(2, POINTS, 3), keys.AGENT_POS: torch.rand(2, 4)}, [2]
+    )
     with pytest.raises(ValueError, match=r"batch size \[2\]: it must be \[\*batch, 2, N, 3\]"):
         dalir(batch_without_history)
 
 
 def test_keys_come_from_arguments():
     torch.manual_seed(0)
-    config = PolicyConfig(kind="fm", down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, euler_steps=2)
+    config = PolicyConfig(
+        kind="fm", down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=20, euler_steps=2
+    )
     policy = make_policy(config, 4, 4, in_keys=["cloud", ("robot", "pos")], out_keys=["plan_chunk"])
     policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 2 - 1)
     obs = _observation()
-    td = TensorDict({"cloud": obs[keys.POINT_CLOUD], ("robot", "pos"): obs[keys.AGENT_POS], "start": torch.ones(3, 1, dtype=torch.bool)}, [3])
+    td = TensorDict(
+        {
+            "cloud": obs[keys.POINT_CLOUD],
+            ("robot", "pos"): obs[keys.AGENT_POS],
+            "start": torch.ones(3, 1, dtype=torch.bool),
+        },
+        [3],
+    )
     actor = receding_horizon(policy, chunk_key="plan_chunk", action_key="move", init_key="start")
     out = actor(td.clone())
     assert out["move"].shape == (3, 4) and out["counter"].shape == (3, 1)
-    dalir = RerankingActor(policy, *_parts()[1:], num_candidates=4, seed=3, in_keys=["cloud", ("robot", "pos")],
-                           out_keys=["plan_chunk", "scores", "choice"])
+    dalir = RerankingActor(
+        policy,
+        *_parts()[1:],
+        num_candidates=4,
+        seed=3,
+        in_keys=["cloud", ("robot", "pos")],
+        out_keys=["plan_chunk", "scores", "choice"],
+    )
     out = receding_horizon(dalir, chunk_key="plan_chunk", action_key="move", init_key="start")(td.clone())
     assert out["scores"].shape == (3, 4) and out["choice"].shape == (3,)
     default = RerankingActor(policy, *_parts()[1:], num_candidates=4, seed=3)
     expected = default(obs.clone())
-    assert torch.equal(out["scores"], expected[CANDIDATE_SCORES]) and torch.equal(out["choice"], expected[CHOSEN_CANDIDATE])
+    assert torch.equal(out["scores"], expected[CANDIDATE_SCORES]) and torch.equal(
+        out["choice"], expected[CHOSEN_CANDIDATE]
+    )

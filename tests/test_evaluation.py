@@ -20,7 +20,15 @@ def test_evaluation_renders_only_the_clouds_decisions_read_and_replays_the_same_
         actor.reset(0)
         period = {} if decision_period is None else {"decision_period": decision_period}
         steps = []
-        result = evaluate(receding_horizon(actor), "reach", 2, seed=1, describe=lambda rollout: steps.append(rollout) or {}, **period, **kwargs)
+        result = evaluate(
+            receding_horizon(actor),
+            "reach",
+            2,
+            seed=1,
+            describe=lambda rollout: steps.append(rollout) or {},
+            **period,
+            **kwargs,
+        )
         return result.to_dict()["episodes"], steps
 
     (lazy, lazy_rollouts), (every, every_rollouts) = records(), records(decision_period=1)
@@ -30,7 +38,9 @@ def test_evaluation_renders_only_the_clouds_decisions_read_and_replays_the_same_
             assert torch.equal(a[key], b[key])
         rendered = torch.isfinite(a[keys.POINT_CLOUD]).reshape(a.shape[-1], -1).all(-1)  # [steps]: both frames rendered
         assert rendered.float().mean() < 0.5 and torch.isfinite(b[keys.POINT_CLOUD]).all()  # fewer renders here
-        assert rendered.tolist() == [t % policy.config.action_steps == 0 for t in range(a.shape[-1])]  # at the decisions only
+        assert rendered.tolist() == [
+            t % policy.config.action_steps == 0 for t in range(a.shape[-1])
+        ]  # at the decisions only
 
 
 def test_evaluation_runs_the_chosen_episodes_and_stops_when_told():
@@ -45,5 +55,7 @@ def test_evaluation_runs_the_chosen_episodes_and_stops_when_told():
     chosen = evaluate(expert, "reach", 2, seed=1, episode_indices=[3, 1], **kwargs).to_dict()["episodes"]
     assert chosen == [full[3], full[1]] and chosen[0]["reset_seed"] == eval_episode_seed(1, 3)
     seen = []
-    stopped = evaluate(expert, "reach", 4, seed=1, stop_when=lambda records: seen.append(len(records)) or len(records) == 2, **kwargs)
+    stopped = evaluate(
+        expert, "reach", 4, seed=1, stop_when=lambda records: seen.append(len(records)) or len(records) == 2, **kwargs
+    )
     assert stopped.to_dict()["episodes"] == full[:2] and seen == [1, 2]

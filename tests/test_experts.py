@@ -43,10 +43,14 @@ def test_drift_noise_statistics():
 
 
 def test_drift_noise_restarts_at_episode_start_and_is_seeded():
-    seq = _noise_sequence(DriftNoise(0.1, correlation=0.99, seed=0, low=-10, high=10), steps=40, batch=4000, reset_at={20})
+    seq = _noise_sequence(
+        DriftNoise(0.1, correlation=0.99, seed=0, low=-10, high=10), steps=40, batch=4000, reset_at={20}
+    )
     assert torch.corrcoef(torch.stack([seq[19].flatten(), seq[18].flatten()]))[0, 1] > 0.95
     assert torch.corrcoef(torch.stack([seq[20].flatten(), seq[19].flatten()]))[0, 1].abs() < 0.05
-    again = _noise_sequence(DriftNoise(0.1, correlation=0.99, seed=0, low=-10, high=10), steps=40, batch=4000, reset_at={20})
+    again = _noise_sequence(
+        DriftNoise(0.1, correlation=0.99, seed=0, low=-10, high=10), steps=40, batch=4000, reset_at={20}
+    )
     assert torch.equal(seq, again)
 
 

@@ -61,20 +61,28 @@ def test_incomplete_trajectory_is_refused():
 def test_dense_reward_targets_are_normalised_reward_to_go_per_trajectory():
     # two trajectories of 2 actions each (3 rows: s_0, s_1, s_T); the final row has no reward
     rows = TensorDict(
-        {keys.REWARD: torch.tensor([1.0, 2.0, 0.0, 4.0, 0.0, 0.0]), keys.IS_FINAL: torch.tensor([0, 0, 1, 0, 0, 1]).bool()}, [6]
+        {
+            keys.REWARD: torch.tensor([1.0, 2.0, 0.0, 4.0, 0.0, 0.0]),
+            keys.IS_FINAL: torch.tensor([0, 0, 1, 0, 0, 1]).bool(),
+        },
+        [6],
     )
     targets = dense_reward_targets(rows, gamma=0.5)
     # reward-to-go: 1 + 0.5*2 = 2, 2, 0 | 4, 0, 0; divided by the largest (4)
     assert torch.equal(targets, torch.tensor([0.5, 0.5, 0.0, 1.0, 0.0, 0.0]))
-    # negative shaped rewards (Adroit Pen's): reward-to-go -1 + 0.5*2 = 0, 2, 0 | -4, 0, 0 mapped from [-4, 2] onto [0, 1]
+    # negative shaped rewards (Adroit Pen's): reward-to-go -1 + 0.5*2 = 0, 2, 0 | -4, 0, 0
+    # mapped from [-4, 2] onto [0, 1]
     rows[keys.REWARD] = torch.tensor([-1.0, 2.0, 0.0, -4.0, 0.0, 0.0])
     assert torch.allclose(dense_reward_targets(rows, gamma=0.5), torch.tensor([4, 6, 4, 0, 4, 4]) / 6)
 
 
 def rollout(done, success, **extra) -> TensorDict:
-    """A rollout in TorchRL's layout ``[..., T]`` with the given ``("next", "done")`` and ``("next", "success")`` flags."""
+    """A rollout in TorchRL's layout ``[..., T]`` with the given ``("next", "done")`` and
+    ``("next", "success")`` flags."""
     done, success = torch.tensor(done, dtype=torch.bool), torch.tensor(success, dtype=torch.bool)
-    return TensorDict({"next": {keys.DONE: done[..., None], keys.SUCCESS: success[..., None]}, **extra}, batch_size=done.shape)
+    return TensorDict(
+        {"next": {keys.DONE: done[..., None], keys.SUCCESS: success[..., None]}, **extra}, batch_size=done.shape
+    )
 
 
 def formula(done, success, gamma):
@@ -104,7 +112,12 @@ def test_label_transform_exact_values():
     data = rollout([0, 0, 1, 0, 1, 0, 0, 0, 1], [0, 0, 1, 0, 0, 0, 1, 0, 0])
     labeled = TerminalLabelTransform(gamma=0.5).inv(data)
     assert keys.COMPLETION_TARGET not in data.keys()  # inv labels a shallow copy
-    torch.testing.assert_close(labeled[keys.COMPLETION_TARGET], torch.tensor([0.125, 0.25, 0.5, 0, 0, 0.0625, 0.125, 0.25, 0.5]), rtol=0, atol=0)
+    torch.testing.assert_close(
+        labeled[keys.COMPLETION_TARGET],
+        torch.tensor([0.125, 0.25, 0.5, 0, 0, 0.0625, 0.125, 0.25, 0.5]),
+        rtol=0,
+        atol=0,
+    )
     assert torch.equal(labeled[keys.TERMINAL_LABEL], torch.tensor([1.0, 1, 1, 0, 0, 1, 1, 1, 1]))
     assert torch.equal(labeled[keys.QUALITY], torch.tensor([IMPERFECT] * 3 + [FAILED] * 2 + [IMPERFECT] * 4))
     assert_follows_formula(labeled, 0.5)
@@ -176,7 +189,9 @@ class TwoOutcomeEnv(EnvBase):
 
     def _reset(self, tensordict=None):
         self.episode, self.t = self.episode + 1, 0
-        return self.full_done_spec.zero().update({keys.STEP: torch.zeros(1), keys.SUCCESS: torch.zeros(1, dtype=torch.bool)})
+        return self.full_done_spec.zero().update(
+            {keys.STEP: torch.zeros(1), keys.SUCCESS: torch.zeros(1, dtype=torch.bool)}
+        )
 
     def _step(self, tensordict):
         self.t += 1
@@ -213,7 +228,9 @@ def test_label_transform_as_collector_postproc():
 def test_label_transform_on_collector_trajectories():
     # the collector assembles whole trajectories out of 5-frame batches and writes them to the buffer
     buffer = ReplayBuffer(storage=LazyTensorStorage(100), transform=TerminalLabelTransform(gamma=0.9), batch_size=4)
-    collector = Collector(TwoOutcomeEnv(), None, frames_per_batch=5, total_frames=30, trajs_per_batch=1, replay_buffer=buffer)
+    collector = Collector(
+        TwoOutcomeEnv(), None, frames_per_batch=5, total_frames=30, trajs_per_batch=1, replay_buffer=buffer
+    )
     for _ in collector:
         pass
     collector.shutdown()
@@ -223,7 +240,9 @@ def test_label_transform_on_collector_trajectories():
     assert y.any() and not y.all()
 
     # padded batches of complete trajectories, as the collector yields them without a buffer
-    collector = Collector(TwoOutcomeEnv(), None, frames_per_batch=5, total_frames=15, trajs_per_batch=2, traj_format="padded")
+    collector = Collector(
+        TwoOutcomeEnv(), None, frames_per_batch=5, total_frames=15, trajs_per_batch=2, traj_format="padded"
+    )
     batch = next(iter(collector))
     collector.shutdown()
     labeled = TerminalLabelTransform(gamma=0.9).inv(batch)
@@ -233,7 +252,11 @@ def test_label_transform_on_collector_trajectories():
 
 
 def test_label_transform_in_a_replay_buffer():
-    data = rollout([[0, 0, 1, 0, 1], [1, 0, 0, 0, 1]], [[0, 0, 1, 0, 0], [0, 0, 0, 0, 0]], observation=torch.arange(10.0).view(2, 5))
+    data = rollout(
+        [[0, 0, 1, 0, 1], [1, 0, 0, 0, 1]],
+        [[0, 0, 1, 0, 0], [0, 0, 0, 0, 0]],
+        observation=torch.arange(10.0).view(2, 5),
+    )
     buffer = ReplayBuffer(storage=LazyTensorStorage(10), transform=TerminalLabelTransform(gamma=0.5), batch_size=3)
     buffer.extend(data)  # labeled on extend; each row of the batch is stored as one [5] item
     assert torch.equal(buffer[:][keys.COMPLETION_TARGET], torch.tensor([[0.125, 0.25, 0.5, 0, 0], [0, 0, 0, 0, 0]]))

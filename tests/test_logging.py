@@ -18,8 +18,14 @@ def test_by_default_a_training_writes_csv_and_no_wandb_run(collected, tmp_path):
     (data / "reach").mkdir(parents=True)
     (data / "reach" / "demos").symlink_to(collected.root)
     smoke = {key: value for key, value in POLICY_PRESETS["smoke"].items() if key != "wandb"}  # the default
-    argv = ["preset=smoke", "task=reach", f"data={data}", f"out={tmp_path / 'policies'}", "progress=false",
-            "num_steps=10"]
+    argv = [
+        "preset=smoke",
+        "task=reach",
+        f"data={data}",
+        f"out={tmp_path / 'policies'}",
+        "progress=false",
+        "num_steps=10",
+    ]
     cfg = parse_config(PolicyTrainingConfig, argv, {"smoke": smoke})
     assert cfg.wandb == "off"
     train_policy(cfg)
@@ -30,8 +36,15 @@ def test_by_default_a_training_writes_csv_and_no_wandb_run(collected, tmp_path):
     assert (scalars / "lr.csv").exists()
 
 
-MODES = [("off", "off"), ("offline", "offline"), ("online", "online"), ("ONLINE", "online"),
-         ("true", "offline"), ("false", "off"), ("on", "offline")]  # OmegaConf reads off / on as booleans
+MODES = [
+    ("off", "off"),
+    ("offline", "offline"),
+    ("online", "online"),
+    ("ONLINE", "online"),
+    ("true", "offline"),
+    ("false", "off"),
+    ("on", "offline"),
+]  # OmegaConf reads off / on as booleans
 
 
 @pytest.mark.parametrize(("given", "mode"), MODES)
@@ -58,12 +71,15 @@ def test_the_main_jobs_wandb_setting_reaches_both_trainings():
         parse_config(PipelineConfig, ["policy_training.wandb=online"], PRESETS)
 
 
-@pytest.mark.parametrize(("config", "presets", "argv"), [
-    (PolicyTrainingConfig, POLICY_PRESETS, ["wandb=maybe"]),
-    (WorldModelTrainingConfig, WORLD_MODEL_PRESETS, ["wandb=1"]),
-    (PipelineConfig, PRESETS, ["wandb=cloud"]),
-    (PipelineConfig, PRESETS, ["world_model.wandb=sometimes"]),
-])
+@pytest.mark.parametrize(
+    ("config", "presets", "argv"),
+    [
+        (PolicyTrainingConfig, POLICY_PRESETS, ["wandb=maybe"]),
+        (WorldModelTrainingConfig, WORLD_MODEL_PRESETS, ["wandb=1"]),
+        (PipelineConfig, PRESETS, ["wandb=cloud"]),
+        (PipelineConfig, PRESETS, ["world_model.wandb=sometimes"]),
+    ],
+)
 def test_an_invalid_wandb_value_is_refused_naming_the_setting(config, presets, argv):
     with pytest.raises(ValueError, match=r"wandb must be one of \['off', 'offline', 'online'\], got"):
         parse_config(config, argv, presets)
@@ -76,8 +92,14 @@ def test_the_main_jobs_calibration_results_go_to_wandb_only_when_asked(wandb, tm
     monkeypatch.setenv("WANDB_SILENT", "true")
     cfg = parse_config(PipelineConfig, ["preset=smoke", "task=reach", f"out={tmp_path}", f"wandb={wandb}"], PRESETS)
     vs_base = {"base_only": 0, "dalir_only": 3, "p_value": 0.25}
-    record = {"episodes": 3, "seed": 1, "alpha": 0.1, "base_success_rate": 0.0, "chosen": "argmax(ensemble)",
-              "entries": [{"name": "argmax(ensemble)", "success_rate": 1.0, "vs_base": vs_base}]}
+    record = {
+        "episodes": 3,
+        "seed": 1,
+        "alpha": 0.1,
+        "base_success_rate": 0.0,
+        "chosen": "argmax(ensemble)",
+        "entries": [{"name": "argmax(ensemble)", "success_rate": 1.0, "vs_base": vs_base}],
+    }
     log_calibration(cfg, record)
     runs = list(cfg.calibration_dir().glob("wandb/offline-run-*/run-*.wandb"))
     assert len(runs) == (wandb == "offline")

@@ -37,12 +37,21 @@ def _policy(kind):
 
 def _window():
     return TensorDict(
-        {keys.POINT_CLOUD: torch.rand(4, 2, 16, 3), keys.AGENT_POS: torch.rand(4, 2, 4), keys.ACTION_CHUNK: torch.rand(4, 16, 4)}, [4]
+        {
+            keys.POINT_CLOUD: torch.rand(4, 2, 16, 3),
+            keys.AGENT_POS: torch.rand(4, 2, 4),
+            keys.ACTION_CHUNK: torch.rand(4, 16, 4),
+        },
+        [4],
     )
 
 
 def _rows(latent_dim):
-    rows = {keys.POINT_CLOUD: torch.rand(6, 16, 3), keys.AGENT_POS: torch.rand(6, 4), keys.COMPLETION_TARGET: torch.rand(6)}
+    rows = {
+        keys.POINT_CLOUD: torch.rand(6, 16, 3),
+        keys.AGENT_POS: torch.rand(6, 4),
+        keys.COMPLETION_TARGET: torch.rand(6),
+    }
     return TensorDict({**rows, keys.LATENT: torch.randn(6, latent_dim)}, [6])
 
 
@@ -53,20 +62,35 @@ def _task_completion(frozen):
 
 
 def _latent_dynamics():
-    batch = TensorDict({keys.LATENT: torch.randn(5, 16), keys.FUTURE: {keys.LATENT: torch.randn(5, 16)}, keys.ACTION_CHUNK: torch.randn(5, 8, 4)}, [5])
+    batch = TensorDict(
+        {
+            keys.LATENT: torch.randn(5, 16),
+            keys.FUTURE: {keys.LATENT: torch.randn(5, 16)},
+            keys.ACTION_CHUNK: torch.randn(5, 8, 4),
+        },
+        [5],
+    )
     return LatentDynamicsLoss(LatentWorldModel(16, 4, hidden=16, layers=1, heads=2)), batch
 
 
 def _imagined_completion():
-    batch = TensorDict({keys.IMAGINED_LATENT: torch.randn(3, 8, 16), keys.FUTURE: {keys.COMPLETION_TARGET: torch.rand(3, 8)}}, [3, 8])
+    batch = TensorDict(
+        {keys.IMAGINED_LATENT: torch.randn(3, 8, 16), keys.FUTURE: {keys.COMPLETION_TARGET: torch.rand(3, 8)}}, [3, 8]
+    )
     return ImaginedCompletionLoss(ScorerEnsemble(16, hidden=16, members=3)), batch
 
 
 # each loss, a batch it reads and the _AcceptedKeys names that loss reads
 CASES = {
     "diffusion": (lambda: (DiffusionLoss(_policy("dp")), _window()), ("point_cloud", "agent_pos", "action_chunk")),
-    "flow_matching": (lambda: (FlowMatchingLoss(_policy("fm")), _window()), ("point_cloud", "agent_pos", "action_chunk")),
-    "consistency": (lambda: (ConsistencyFlowMatchingLoss(_policy("fm")), _window()), ("point_cloud", "agent_pos", "action_chunk")),
+    "flow_matching": (
+        lambda: (FlowMatchingLoss(_policy("fm")), _window()),
+        ("point_cloud", "agent_pos", "action_chunk"),
+    ),
+    "consistency": (
+        lambda: (ConsistencyFlowMatchingLoss(_policy("fm")), _window()),
+        ("point_cloud", "agent_pos", "action_chunk"),
+    ),
     "task_completion": (lambda: _task_completion(frozen=False), ("point_cloud", "agent_pos", "target")),
     "task_completion_frozen": (lambda: _task_completion(frozen=True), ("latent", "target")),
     "latent_dynamics": (_latent_dynamics, ("latent", "future_latent", "action_chunk")),

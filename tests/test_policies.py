@@ -20,7 +20,9 @@ def _policy(kind, seed=0):
     """``kind`` is ``dp``, ``fm`` or ``fm-sample`` (flow matching whose network predicts the clean chunk)."""
     torch.manual_seed(seed)
     kind, _, prediction = kind.partition("-")
-    policy = make_policy(PolicyConfig(kind=kind, flow_prediction=prediction or "velocity", **TINY), action_dim=4, state_dim=4)
+    policy = make_policy(
+        PolicyConfig(kind=kind, flow_prediction=prediction or "velocity", **TINY), action_dim=4, state_dim=4
+    )
     policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 2 - 1)
     return policy
 
@@ -28,7 +30,11 @@ def _policy(kind, seed=0):
 def _batch(n=8, points=16):
     torch.manual_seed(1)
     return TensorDict(
-        {keys.POINT_CLOUD: torch.rand(n, 2, points, 3), keys.AGENT_POS: torch.rand(n, 2, 4), keys.ACTION_CHUNK: torch.rand(n, 16, 4) * 2 - 1},
+        {
+            keys.POINT_CLOUD: torch.rand(n, 2, points, 3),
+            keys.AGENT_POS: torch.rand(n, 2, 4),
+            keys.ACTION_CHUNK: torch.rand(n, 16, 4) * 2 - 1,
+        },
         [n],
     )
 
@@ -86,7 +92,11 @@ def test_policy_shapes_and_reproducible_sampling(kind):
 def test_sample_rejects_noise_of_the_wrong_shape():
     policy = _policy("fm")
     cond = policy.encode(_batch()[keys.POINT_CLOUD], _batch()[keys.AGENT_POS])
-    for bad in (torch.randn(8, 15, 4), torch.randn(4, 32, 4), torch.randn(8 * 16 * 4)):  # the last two hold the right count
+    for bad in (
+        torch.randn(8, 15, 4),
+        torch.randn(4, 32, 4),
+        torch.randn(8 * 16 * 4),
+    ):  # the last two hold the right count
         with pytest.raises(ValueError, match="one chunk per condition"):
             policy.sample(cond, noise=bad)
 
@@ -135,7 +145,9 @@ def test_policy_outputs_stay_within_the_env_action_bounds(trained_policy):
     assert torch.equal(loaded.action_low, low) and torch.equal(loaded.action_high, high)
     assert "action_low" not in loaded.state_dict()  # the env's bounds, not weights: checkpoints are unchanged
     policy = _policy("fm")
-    policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 10 - 5)  # demo actions beyond [-1, 1]
+    policy.fit_normalizers(
+        torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 10 - 5
+    )  # demo actions beyond [-1, 1]
     cond = policy.encode(_batch()[keys.POINT_CLOUD], _batch()[keys.AGENT_POS])
     unbounded = policy.sample(cond, torch.Generator().manual_seed(0))
     assert ((unbounded < low) | (unbounded > high)).any()
@@ -157,7 +169,9 @@ def test_receding_horizon_executes_chunk_entries_1_to_8_and_replans_every_8_step
         value = 0.1 * (len(decisions) - 1) + 0.01 * torch.arange(16.0)
         return value[:, None].expand(16, 4).expand(*cloud.shape[:-3], 16, 4)
 
-    actor = receding_horizon(TensorDictModule(chunk, [keys.POINT_CLOUD], [keys.ACTION_CHUNK]), obs_steps=2, action_steps=8)
+    actor = receding_horizon(
+        TensorDictModule(chunk, [keys.POINT_CLOUD], [keys.ACTION_CHUNK]), obs_steps=2, action_steps=8
+    )
     env = SerialEnv(1, lambda: make_env(SHORT_REACH, seed=0, num_points=16, history=2))
     actions = env.rollout(24, actor, break_when_any_done=False)[keys.ACTION][0]
     env.close()
@@ -180,7 +194,12 @@ def test_policy_rejects_bad_observations():
 
 @pytest.mark.parametrize(
     "kind, loss_class",
-    [("dp", DiffusionLoss), ("fm", FlowMatchingLoss), ("fm-sample", FlowMatchingLoss), ("fm", ConsistencyFlowMatchingLoss)],
+    [
+        ("dp", DiffusionLoss),
+        ("fm", FlowMatchingLoss),
+        ("fm-sample", FlowMatchingLoss),
+        ("fm", ConsistencyFlowMatchingLoss),
+    ],
 )
 def test_training_lowers_the_loss(kind, loss_class):
     policy = _policy(kind)
@@ -214,7 +233,9 @@ def test_checkpoint_reloads_the_ema_policy_identically(trained_policy, collected
     # the action normalizer was fitted on the demos' actions and travels with the weights
     rows = collected.rows
     acting = rows[keys.ACTION][~rows[keys.IS_FINAL]]
-    assert torch.equal(a.action_normalizer.low, acting.min(0).values) and torch.equal(a.action_normalizer.high, acting.max(0).values)
+    assert torch.equal(a.action_normalizer.low, acting.min(0).values) and torch.equal(
+        a.action_normalizer.high, acting.max(0).values
+    )
     batch = _batch(4, points=64)
     noise = torch.randn(4, 16, 4)
     cond_a = a.encode(batch[keys.POINT_CLOUD], batch[keys.AGENT_POS])
@@ -294,6 +315,14 @@ def test_fit_stops_on_a_non_finite_loss(tmp_path):
             return TensorDict({"loss": (model(batch["x"]) * float("nan")).mean()}, [])
 
     with pytest.raises(FloatingPointError, match="nan at step 0"):
-        fit(ExplodingLoss(), model, lambda g: TensorDict({"x": torch.rand(4, 2, generator=g)}, [4]), 5, OptimConfig(),
-            tmp_path / "checkpoint.pt", lambda ema: {}, progress=False)
+        fit(
+            ExplodingLoss(),
+            model,
+            lambda g: TensorDict({"x": torch.rand(4, 2, generator=g)}, [4]),
+            5,
+            OptimConfig(),
+            tmp_path / "checkpoint.pt",
+            lambda ema: {},
+            progress=False,
+        )
     assert not (tmp_path / "checkpoint.pt").exists()  # nothing half-trained is saved

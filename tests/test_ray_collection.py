@@ -62,18 +62,32 @@ def test_the_backend_is_a_validated_collection_setting():
 
 def test_more_ray_workers_than_cpus_are_refused_not_left_waiting(tmp_path, local_ray):
     with pytest.raises(ValueError, match=f"the Ray cluster has {RAY_CPUS} CPUs, fewer than num_workers={RAY_CPUS + 1}"):
-        collect(SHORT_REACH, tmp_path, [Source("expert", 1)], num_points=32, num_workers=RAY_CPUS + 1, backend="ray", progress=False)
+        collect(
+            SHORT_REACH,
+            tmp_path,
+            [Source("expert", 1)],
+            num_points=32,
+            num_workers=RAY_CPUS + 1,
+            backend="ray",
+            progress=False,
+        )
 
 
-def test_the_sweep_hands_one_ray_task_per_run_and_records_what_the_local_launcher_records(tmp_path, local_ray, monkeypatch):
+def test_the_sweep_hands_one_ray_task_per_run_and_records_what_the_local_launcher_records(
+    tmp_path, local_ray, monkeypatch
+):
     """Each run's process is stubbed (a main job takes minutes): the Ray launcher runs one task per run and returns
     the local launcher's records, in the same order."""
     sweep = runpy.run_path(str(SWEEP))
-    monkeypatch.setitem(sweep["run_one"].__globals__, "run_logged", lambda command, log, threads: (0, len(command[2])))  # seconds: len("task=...")
+    monkeypatch.setitem(
+        sweep["run_one"].__globals__, "run_logged", lambda command, log, threads: (0, len(command[2]))
+    )  # seconds: len("task=...")
     argv = ["tasks=[reach,door]", "seeds=[0,1]", f"out={tmp_path}"]
     runs = [(task, seed) for seed in (0, 1) for task in ("reach", "door")]
     local = sweep["launch"](parse_config(sweep["Config"], argv), runs)
     on_ray = sweep["launch"](parse_config(sweep["Config"], [*argv, "launcher=ray"]), runs)
-    assert on_ray == local and [(r["task"], r["seed"], r["seconds"]) for r in on_ray] == [(t, s, len(f"task={t}")) for t, s in runs]
+    assert on_ray == local and [(r["task"], r["seed"], r["seconds"]) for r in on_ray] == [
+        (t, s, len(f"task={t}")) for t, s in runs
+    ]
     with pytest.raises(ValueError, match="launcher must be one of"):
         parse_config(sweep["Config"], ["launcher=slurm"])

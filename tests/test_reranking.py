@@ -28,7 +28,8 @@ TINY = dict(down_dims=[16, 32, 64], point_hidden=[16, 32, 64], train_timesteps=2
 
 
 def _parts(kind="fm", action_dim=4, seed=0, **policy_fields):
-    """A tiny untrained policy (``policy_fields``: e.g. its ``task`` and ``num_points``), latent encoder, world model and scorer."""
+    """A tiny untrained policy (``policy_fields``: e.g. its ``task`` and ``num_points``), latent encoder,
+    world model and scorer."""
     torch.manual_seed(seed)
     policy = make_policy(PolicyConfig(kind=kind, **TINY), action_dim=action_dim, state_dim=4, **policy_fields)
     policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, action_dim) * 2 - 1)
@@ -41,7 +42,13 @@ def _parts(kind="fm", action_dim=4, seed=0, **policy_fields):
 
 def _observation(batch=3, points=40):
     g = torch.Generator().manual_seed(5)
-    return TensorDict({keys.POINT_CLOUD: torch.rand(batch, 2, points, 3, generator=g), keys.AGENT_POS: torch.rand(batch, 2, 4, generator=g)}, [batch])
+    return TensorDict(
+        {
+            keys.POINT_CLOUD: torch.rand(batch, 2, points, 3, generator=g),
+            keys.AGENT_POS: torch.rand(batch, 2, 4, generator=g),
+        },
+        [batch],
+    )
 
 
 def test_point_dropout_module_keeps_shape_and_drops_about_p():
@@ -76,10 +83,14 @@ def test_gaussian_observation_noise_jitters_every_candidate_but_the_clean_one():
     policy, *_ = _parts()
     obs = _observation(batch=2)
     clean = policy.encode(obs[keys.POINT_CLOUD], obs[keys.AGENT_POS])
-    cond = GaussianObservationNoise(0.05).conditions(policy, obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], 4, torch.Generator().manual_seed(0))
+    cond = GaussianObservationNoise(0.05).conditions(
+        policy, obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], 4, torch.Generator().manual_seed(0)
+    )
     torch.testing.assert_close(cond[:, 0], clean)
     assert all(not torch.allclose(cond[:, k], clean) for k in range(1, 4))
-    still = GaussianObservationNoise(0.0).conditions(policy, obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], 4, torch.Generator().manual_seed(0))
+    still = GaussianObservationNoise(0.0).conditions(
+        policy, obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], 4, torch.Generator().manual_seed(0)
+    )
     torch.testing.assert_close(still, clean[:, None].expand(-1, 4, -1))
 
 
@@ -126,7 +137,9 @@ def test_random_candidate_control_executes_one_of_dalirs_own_candidates_at_rando
     chosen = control[CHOSEN_CANDIDATE]
     # the same candidates as DALI-R with the same seed, replayed from the same generator stream
     g = torch.Generator().manual_seed(3)
-    chunks = parts[0].sample(PointDropout(0.2).conditions(parts[0], obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], 8, g), g)
+    chunks = parts[0].sample(
+        PointDropout(0.2).conditions(parts[0], obs[keys.POINT_CLOUD], obs[keys.AGENT_POS], 8, g), g
+    )
     torch.testing.assert_close(control[keys.ACTION_CHUNK], chunks[torch.arange(64), chosen])
     assert torch.equal(chosen, control[CANDIDATE_SCORES].argmax(-1))  # the random draws made the choice
     dalir = RerankingActor(*parts, num_candidates=8, seed=3)(obs.clone())
@@ -156,16 +169,22 @@ def test_actor_rejects_bad_inputs_and_mismatched_models():
     with pytest.raises(ValueError, match="6-D actions"):
         RerankingActor(policy, encoder, other_world_model, scorer)
     with pytest.raises(ValueError, match="imagines 4 actions; the policy executes 8"):
-        RerankingActor(policy, encoder, LatentWorldModel(encoder.latent_dim, 4, 4, hidden=32, layers=1, heads=2), scorer)
+        RerankingActor(
+            policy, encoder, LatentWorldModel(encoder.latent_dim, 4, 4, hidden=32, layers=1, heads=2), scorer
+        )
     with pytest.raises(ValueError, match="latent size"):
-        RerankingActor(policy, encoder, LatentWorldModel(encoder.latent_dim + 1, 4, 8, hidden=32, layers=1, heads=2), scorer)
+        RerankingActor(
+            policy, encoder, LatentWorldModel(encoder.latent_dim + 1, 4, 8, hidden=32, layers=1, heads=2), scorer
+        )
     with pytest.raises(ValueError, match="at least 1"):
         RerankingActor(policy, encoder, world_model, scorer, num_candidates=0)
 
 
 def test_actor_runs_8_of_16_in_rollout_and_collector():
     decision_keys = [CANDIDATE_SCORES, CHOSEN_CANDIDATE]
-    actor = receding_horizon(RerankingActor(*_parts(), num_candidates=4), obs_steps=2, action_steps=8, decision_keys=decision_keys)
+    actor = receding_horizon(
+        RerankingActor(*_parts(), num_candidates=4), obs_steps=2, action_steps=8, decision_keys=decision_keys
+    )
     env = SerialEnv(1, lambda: make_env(SHORT_REACH, seed=0, num_points=40, history=2))
     rollout = env.rollout(16, actor, break_when_any_done=False)
     assert rollout[keys.ACTION].shape == (1, 16, 4)
@@ -186,7 +205,9 @@ def test_candidate_outcomes_try_every_candidate_from_the_same_state():
     from torchrl_dalir.seeds import eval_episode_seed
 
     parts = _parts(task="reach", num_points=40)
-    records = candidate_outcomes(RerankingActor(*parts, num_candidates=4, seed=3), SHORT_REACH, episodes=1, decisions=2, progress=False)
+    records = candidate_outcomes(
+        RerankingActor(*parts, num_candidates=4, seed=3), SHORT_REACH, episodes=1, decisions=2, progress=False
+    )
     assert [r["decision"] for r in records] == [0, 1]
     first = records[0]
     assert len(first["imagined_score"]) == len(first["real_score"]) == len(first["success"]) == 4
@@ -226,14 +247,29 @@ def test_candidate_outcomes_follow_through_every_stride_th_decision():
     assert all(len(record["final_success"]) == 3 for record in records)
     assert run() == records  # seeded: the follow-through rollouts replay exactly
     actor = RerankingActor(*parts, num_candidates=3, seed=4)
-    every = candidate_outcomes(actor, task, episodes=1, decisions=5, stride=2, follow_through=True, progress=False, render_every_step=True)
+    every = candidate_outcomes(
+        actor, task, episodes=1, decisions=5, stride=2, follow_through=True, progress=False, render_every_step=True
+    )
     assert every == records  # rendering only the clouds that are read changes nothing
-    assert "final_success" not in candidate_outcomes(RerankingActor(*parts, num_candidates=3, seed=4), task, episodes=1, decisions=1, progress=False)[0]
+    assert (
+        "final_success"
+        not in candidate_outcomes(
+            RerankingActor(*parts, num_candidates=3, seed=4), task, episodes=1, decisions=1, progress=False
+        )[0]
+    )
 
 
 def test_follow_through_summary_exact_values(tmp_path):
-    record = {"imagined_score": [0.9, 0.1, 0.5, 0.2], "real_score": [0.3, 0.2, 0.1, 0.4], "success": [False] * 4,
-              "chosen": 0, "rank_correlation": 0.0, "imagination_error": 1.0, "real_spread": 1.0, "action_distance": [0.0, 1.0, 2.0, 3.0]}
+    record = {
+        "imagined_score": [0.9, 0.1, 0.5, 0.2],
+        "real_score": [0.3, 0.2, 0.1, 0.4],
+        "success": [False] * 4,
+        "chosen": 0,
+        "rank_correlation": 0.0,
+        "imagination_error": 1.0,
+        "real_spread": 1.0,
+        "action_distance": [0.0, 1.0, 2.0, 3.0],
+    }
     split = {**record, "final_success": [True, False, False, True]}
     none = {**record, "final_success": [False, False, False, False]}
     summary = summarize_candidate_outcomes([split, none])
@@ -256,7 +292,10 @@ def test_follow_through_summary_exact_values(tmp_path):
     tied = {**split, "imagined_score": [0.5, 0.5, 0.5, 0.5]}
     assert success_by_score_rank([tied], bins=2) == [0.5, 0.5]
     # 0.1 takes the lowest position; the three tied at 0.5 share positions 1-3 (1 in the low half, 2 in the high)
-    assert success_by_score_rank([{**tied, "imagined_score": [0.5, 0.1, 0.5, 0.5]}], bins=2) == [pytest.approx(1 / 3), pytest.approx(2 / 3)]
+    assert success_by_score_rank([{**tied, "imagined_score": [0.5, 0.1, 0.5, 0.5]}], bins=2) == [
+        pytest.approx(1 / 3),
+        pytest.approx(2 / 3),
+    ]
     with pytest.raises(ValueError, match="fewer than bins=4"):
         success_by_score_rank([{**split, "imagined_score": [0.1, 0.2, 0.3], "final_success": [True] * 3}])
     # saturated scores vary but their distance from the median does not: no correlation to take, whatever the order
@@ -264,7 +303,9 @@ def test_follow_through_summary_exact_values(tmp_path):
     assert np.isnan(summarize_candidate_outcomes([saturated])["extreme_score_distance_correlation"])
     for decisions in ([saturated, record], [record, saturated]):  # skipped, not a NaN in the median
         assert summarize_candidate_outcomes(decisions)["extreme_score_distance_correlation"] == pytest.approx(-0.5)
-    assert plot_candidate_outcomes([split, none], tmp_path / "outcomes.png").stat().st_size > 0  # with the success-by-quarter panel
+    assert (
+        plot_candidate_outcomes([split, none], tmp_path / "outcomes.png").stat().st_size > 0
+    )  # with the success-by-quarter panel
 
 
 def test_dropout_policy_samples_a_dropout_candidate_and_leaves_the_observation_clean():
@@ -280,7 +321,9 @@ def test_dropout_policy_samples_a_dropout_candidate_and_leaves_the_observation_c
     assert torch.equal(chunk, policy.sample(policy.encode(clean, obs[keys.AGENT_POS], keep), generator))
     generator = torch.Generator().manual_seed(7)
     PointDropout(0.3).keep_masks((2, 2, 40), generator)
-    assert not torch.equal(chunk, policy.sample(policy.encode(clean, obs[keys.AGENT_POS]), generator))  # the mask mattered
+    assert not torch.equal(
+        chunk, policy.sample(policy.encode(clean, obs[keys.AGENT_POS]), generator)
+    )  # the mask mattered
     torch.manual_seed(3)  # torch's global generator plays no part: reset replays
     assert not torch.equal(explorer(obs.clone())[keys.ACTION_CHUNK], chunk)
     explorer.reset()

@@ -18,10 +18,17 @@ def test_the_committed_tables_are_rebuilt_unchanged_from_the_run_records(tmp_pat
         shutil.copy(REPO / name, copy)
     tables = tmp_path / "tables"
     monkeypatch.chdir(REPO)  # the records' folder, as the script's default names it
-    monkeypatch.setattr(sys, "argv", [
-        "update_readme_tables.py", f"out={tables}", f"trusted_json={tables / 'trusted.json'}",
-        f"table1_json={tables / 'json' / 'table1.json'}", f"files=[{','.join(map(str, docs.values()))}]",
-    ])
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            "update_readme_tables.py",
+            f"out={tables}",
+            f"trusted_json={tables / 'trusted.json'}",
+            f"table1_json={tables / 'json' / 'table1.json'}",
+            f"files=[{','.join(map(str, docs.values()))}]",
+        ],
+    )
     runpy.run_path(str(SCRIPT), run_name="__main__")
     for name, copy in docs.items():
         assert copy.read_text() == (REPO / name).read_text(), f"{name}: run examples/maintainer/update_readme_tables.py"

@@ -23,7 +23,7 @@ class ActionsAsLatent(nn.Module):
         self.latent_dim, self.action_dim, self.action_steps = latent_dim, ACTION_DIM, STEPS
 
     def imagine(self, latent, actions):
-        return torch.cat([actions.flatten(-2), latent[..., STEPS * ACTION_DIM:]], -1)
+        return torch.cat([actions.flatten(-2), latent[..., STEPS * ACTION_DIM :]], -1)
 
 
 class DistanceScorer(nn.Module):
@@ -47,14 +47,24 @@ def _actor(method, seed=3, num_candidates=8, **settings):
     policy, encoder, _, _ = _parts()
     world_model, scorer = ActionsAsLatent(encoder.latent_dim), DistanceScorer(_target())
     search = SearchConfig(method, **settings)
-    return RerankingActor(policy, encoder, world_model, scorer, num_candidates=num_candidates, candidates=CleanObservation(),
-                          search=search, seed=seed)
+    return RerankingActor(
+        policy,
+        encoder,
+        world_model,
+        scorer,
+        num_candidates=num_candidates,
+        candidates=CleanObservation(),
+        search=search,
+        seed=seed,
+    )
 
 
 def _seeds(actor, cloud, agent_pos, seed=3):
     """The policy samples the actor's search starts from (its generator's first draws)."""
     g = torch.Generator().manual_seed(seed)
-    return actor.policy.sample(CleanObservation().conditions(actor.policy, cloud, agent_pos, actor.num_candidates, g), g)
+    return actor.policy.sample(
+        CleanObservation().conditions(actor.policy, cloud, agent_pos, actor.num_candidates, g), g
+    )
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -96,9 +106,18 @@ def test_search_is_reproducible_under_the_actor_seed(method):
 
 def test_gradient_ascent_through_the_scorer_ensemble():
     policy, encoder, world_model, scorer = _parts()
-    actor = RerankingActor(policy, encoder, world_model, scorer, ensemble=ScorerEnsemble(encoder.latent_dim, hidden=32, members=3),
-                           num_candidates=6, candidates=CleanObservation(), search=SearchConfig("gradient", iterations=4),
-                           selection=SelectionConfig("argmax", "ensemble"), seed=3)
+    actor = RerankingActor(
+        policy,
+        encoder,
+        world_model,
+        scorer,
+        ensemble=ScorerEnsemble(encoder.latent_dim, hidden=32, members=3),
+        num_candidates=6,
+        candidates=CleanObservation(),
+        search=SearchConfig("gradient", iterations=4),
+        selection=SelectionConfig("argmax", "ensemble"),
+        seed=3,
+    )
     obs = _observation()
     cloud, agent_pos = obs[keys.POINT_CLOUD], obs[keys.AGENT_POS]
     executed = policy.config.executed
@@ -148,22 +167,34 @@ def test_table2_script_evaluates_every_source_on_the_same_episodes(tmp_path, mon
     monkeypatch.setattr(compare, "evaluate_checkpoints", fake_evaluate)
     monkeypatch.setattr(checkpoints, "load_policy", lambda path, device: SimpleNamespace(task=Path(path).stem))
     script = Path(__file__).resolve().parents[1] / "examples" / "paper" / "table2_candidates.py"
-    args = ["policies=[stick-pull.pt,reach.pt]", "world_models=[a.pt,b.pt]", "search.iterations=2", "episodes=3", f"out={tmp_path}"]
+    args = [
+        "policies=[stick-pull.pt,reach.pt]",
+        "world_models=[a.pt,b.pt]",
+        "search.iterations=2",
+        "episodes=3",
+        f"out={tmp_path}",
+    ]
     monkeypatch.setattr(sys, "argv", ["x", *args])
     runpy.run_path(str(script), run_name="__main__")
     assert len(calls) == 2 * 7 and {c["episodes"] for c in calls} == {3} and {c["seed"] for c in calls} == {0}
     by_source = calls[1:7]  # stick-pull: base, then dropout, noise, shooting, cem, mppi, gradient
-    assert isinstance(by_source[0]["candidates"], PointDropout) and isinstance(by_source[1]["candidates"], GaussianObservationNoise)
+    assert isinstance(by_source[0]["candidates"], PointDropout) and isinstance(
+        by_source[1]["candidates"], GaussianObservationNoise
+    )
     assert [c["search"].method for c in by_source[2:]] == ["shooting", "cem", "mppi", "gradient"]
     assert all(isinstance(c["candidates"], CleanObservation) and c["search"].iterations == 2 for c in by_source[2:])
     assert all(c["search"].fixed_dims == [3] for c in by_source[2:])  # MetaWorld: the gripper stays as sampled
     data = json.loads((tmp_path / "table2.json").read_text())
     assert [row["task"] for row in data["table"]] == ["stick-pull", "reach"]
     assert data["runs"][0]["methods"]["cem"]["search"].startswith("cem(iterations=2")
-    assert data["runs"][0]["methods"]["base"]["outcomes"] == "010" and data["runs"][0]["methods"]["dropout"]["outcomes"] == "101"
+    assert (
+        data["runs"][0]["methods"]["base"]["outcomes"] == "010"
+        and data["runs"][0]["methods"]["dropout"]["outcomes"] == "101"
+    )
     text = (tmp_path / "table2.md").read_text()
     assert "| point dropout | policy input |" in text and "| CEM | action chunk |" in text
-    # paired with the base policy on the same episodes: base (call 1) solved episode 1, dropout (call 2) episodes 0 and 2
+    # paired with the base policy on the same episodes: base (call 1) solved episode 1,
+    # dropout (call 2) episodes 0 and 2
     assert data["table"][0]["vs_base"]["dropout"] == {"base_only": 1, "dalir_only": 2, "p_value": 1.0}
     assert data["table"][0]["vs_base"]["noise"] == {"base_only": 0, "dalir_only": 0, "p_value": 1.0}
     assert "| 60.0 (1 / 2, p = 1.000) |" in text

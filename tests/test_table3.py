@@ -27,15 +27,26 @@ def table3(monkeypatch):
 def fake_runs(outcomes):
     """In place of the main-job processes: ``outcomes[(task, seed, variant)]`` gives the success of
     the base policy and of arg-max, and the world model's held-out MSE."""
+
     def run(_, task, seed, variant):
         base, argmax, mse = outcomes[(task, seed, variant)]
-        return {"task": task, "seed": seed, "variant": variant, "command": [], "episodes": 50,
-                "success": {BASE: base, ARGMAX: argmax}, "metrics": {"wm_mse": mse, "no_change_mse": 0.01}}
+        return {
+            "task": task,
+            "seed": seed,
+            "variant": variant,
+            "command": [],
+            "episodes": 50,
+            "success": {BASE: base, ARGMAX: argmax},
+            "metrics": {"wm_mse": mse, "no_change_mse": 0.01},
+        }
+
     return run
 
 
 def test_every_variant_is_its_own_main_job_run_evaluated_by_argmax_alone(table3):
-    cfg = parse_config(table3.Config, ["part=b", "mixed_sizes=[100,0]", "overrides=[world_model.encoder=finetune]", "out=/tmp/t3"])
+    cfg = parse_config(
+        table3.Config, ["part=b", "mixed_sizes=[100,0]", "overrides=[world_model.encoder=finetune]", "out=/tmp/t3"]
+    )
     assert cfg.tasks == ["disassemble"]
     assert list(table3.variants(cfg)) == ["", "mixed100"]
     names = {}
@@ -57,13 +68,19 @@ def test_every_variant_is_its_own_main_job_run_evaluated_by_argmax_alone(table3)
 
 
 def test_table_a_puts_base_sparse_and_dense_side_by_side(table3, tmp_path, monkeypatch):
-    outcomes = {("pen", 0, ""): (0.40, 0.46, 0), ("pen", 0, "dense_reward"): (0.40, 0.50, 0),
-                ("disassemble", 0, ""): (0.80, 0.84, 0), ("disassemble", 0, "dense_reward"): (0.80, 0.90, 0)}
+    outcomes = {
+        ("pen", 0, ""): (0.40, 0.46, 0),
+        ("pen", 0, "dense_reward"): (0.40, 0.50, 0),
+        ("disassemble", 0, ""): (0.80, 0.84, 0),
+        ("disassemble", 0, "dense_reward"): (0.80, 0.90, 0),
+    }
     monkeypatch.setattr(table3, "run", fake_runs(outcomes))
     table3.main([f"table_out={tmp_path}"])
     data = json.loads((tmp_path / "table3a.json").read_text())
-    assert data["table"] == [{"task": "pen", "base": [0.40], "sparse": [0.46], "dense": [0.50]},
-                             {"task": "disassemble", "base": [0.80], "sparse": [0.84], "dense": [0.90]}]
+    assert data["table"] == [
+        {"task": "pen", "base": [0.40], "sparse": [0.46], "dense": [0.50]},
+        {"task": "disassemble", "base": [0.80], "sparse": [0.84], "dense": [0.90]},
+    ]
     text = (tmp_path / "table3a.md").read_text()
     assert "| sparse terminal labels | 46.0 | 84.0 | 65.0 |" in text
     assert "| dense simulator reward (oracle) | 50.0 | 90.0 | 70.0 |" in text
@@ -71,14 +88,26 @@ def test_table_a_puts_base_sparse_and_dense_side_by_side(table3, tmp_path, monke
 
 
 def test_table_b_reports_mse_and_success_per_data_size_mean_over_seeds(table3, tmp_path, monkeypatch):
-    outcomes = {("disassemble", s, v): (0.8 if not v else None, rate, mse) for s, v, rate, mse in [  # (a variant runs no base policy)
-        (0, "", 0.86, 0.0010), (1, "", 0.84, 0.0012), (0, "mixed100", 0.80, 0.0030), (1, "mixed100", 0.78, 0.0034)]}
+    outcomes = {
+        ("disassemble", s, v): (0.8 if not v else None, rate, mse)
+        for s, v, rate, mse in [  # (a variant runs no base policy)
+            (0, "", 0.86, 0.0010),
+            (1, "", 0.84, 0.0012),
+            (0, "mixed100", 0.80, 0.0030),
+            (1, "mixed100", 0.78, 0.0034),
+        ]
+    }
     monkeypatch.setattr(table3, "run", fake_runs(outcomes))
     table3.main(["part=b", "seeds=[0,1]", "mixed_sizes=[100,0]", f"table_out={tmp_path}"])
     rows = json.loads((tmp_path / "table3b.json").read_text())["table"]
-    assert [(r["mixed_trajectories"], r["success"], r["wm_mse"]) for r in rows] == [(100, [0.80, 0.78], [0.0030, 0.0034]),
-                                                                                   ("all", [0.86, 0.84], [0.0010, 0.0012])]
+    assert [(r["mixed_trajectories"], r["success"], r["wm_mse"]) for r in rows] == [
+        (100, [0.80, 0.78], [0.0030, 0.0034]),
+        ("all", [0.86, 0.84], [0.0010, 0.0012]),
+    ]
     text = (tmp_path / "table3b.md").read_text()
     assert all(r["base"] == [0.8, 0.8] for r in rows)  # the main runs' base policy, for every size
-    assert "| disassemble | 100 | 0.00320 | 0.01000 | 80.0 | 79.0 |" in text and "| disassemble | all | 0.00110 | 0.01000 | 80.0 | 85.0 |" in text
+    assert (
+        "| disassemble | 100 | 0.00320 | 0.01000 | 80.0 | 79.0 |" in text
+        and "| disassemble | all | 0.00110 | 0.01000 | 80.0 | 85.0 |" in text
+    )
     assert (tmp_path / "table3b.png").stat().st_size > 0

@@ -38,13 +38,18 @@ def test_evaluation_records_the_first_episodes_of_each_method(trained_world_mode
     for method, name in (("base", "base policy"), ("dalir", "DALI-R")):
         path = tmp_path / "videos" / f"{method}_episode_0.gif"
         steps = rows[name]["records"][0]["steps"]
-        assert path.stat().st_size > 0 and _frames(path) == (steps + 1, (VIDEO_SIZE, VIDEO_SIZE))  # the reset and every step
+        assert path.stat().st_size > 0 and _frames(path) == (
+            steps + 1,
+            (VIDEO_SIZE, VIDEO_SIZE),
+        )  # the reset and every step
         with Image.open(path) as gif:
             assert len(gif.convert("L").getcolors(maxcolors=VIDEO_SIZE**2)) > 10  # a rendered scene, not a blank frame
     # recording changes no episode
     plain = evaluate_checkpoints(policy_path, wm_path, **kwargs)
     for name in ("base policy", "DALI-R"):
-        assert [(r["steps"], r["episode_return"]) for r in plain[name]["records"]] == [(r["steps"], r["episode_return"]) for r in rows[name]["records"]]
+        assert [(r["steps"], r["episode_return"]) for r in plain[name]["records"]] == [
+            (r["steps"], r["episode_return"]) for r in rows[name]["records"]
+        ]
     with pytest.raises(ValueError, match="video_dir"):
         evaluate_checkpoints(policy_path, wm_path, video=1, **kwargs)
 
@@ -56,7 +61,9 @@ def test_evaluate_script_refuses_a_negative_number_of_videos():
 
     from torchrl_dalir.config import parse_config
 
-    spec = importlib.util.spec_from_file_location("example_evaluate_video", Path(__file__).resolve().parents[1] / "examples" / "evaluate.py")
+    spec = importlib.util.spec_from_file_location(
+        "example_evaluate_video", Path(__file__).resolve().parents[1] / "examples" / "evaluate.py"
+    )
     module = sys.modules[spec.name] = importlib.util.module_from_spec(spec)  # registered, so its annotations resolve
     spec.loader.exec_module(module)
     assert parse_config(module.Config, ["video=2"]).video == 2

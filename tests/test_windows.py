@@ -14,7 +14,14 @@ from torchrl_dalir.envs.history import latest_history
 def _dataset(tmp_path, lengths=(20, 5)):
     writer = DatasetWriter(tmp_path, DatasetMeta(task="synthetic", num_points=8, gamma=0.5, seed=0, sources=[]))
     for i, n in enumerate(lengths):
-        rows = trajectory_rows(synthetic_trajectory(n, i % 2 == 0), trajectory_id=i, source=0, noise_scale=0.0, expert_source=True, gamma=0.5)
+        rows = trajectory_rows(
+            synthetic_trajectory(n, i % 2 == 0),
+            trajectory_id=i,
+            source=0,
+            noise_scale=0.0,
+            expert_source=True,
+            gamma=0.5,
+        )
         writer.write_chunk(i, rows)
     return writer.finalize()
 
@@ -74,7 +81,9 @@ def test_env_history_equals_the_windows_and_the_diagnostics_history(tmp_path):
     assert rollout.shape == (6,) and rollout["next", keys.DONE][-1].item()
     writer = DatasetWriter(tmp_path, DatasetMeta(task="reach", num_points=16, gamma=0.9, seed=0, sources=[]))
     frames = newest_frame(rollout)  # what a collection stores
-    writer.write_chunk(0, trajectory_rows(frames, trajectory_id=0, source=0, noise_scale=0.0, expert_source=False, gamma=0.9))
+    writer.write_chunk(
+        0, trajectory_rows(frames, trajectory_id=0, source=0, noise_scale=0.0, expert_source=False, gamma=0.9)
+    )
     windows = TrajectoryWindows(writer.finalize(), obs_steps=3, horizon=3, future_offset=1)
     batch = windows[torch.arange(len(windows))]
     for key in (keys.POINT_CLOUD, keys.AGENT_POS):

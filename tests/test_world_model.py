@@ -53,7 +53,9 @@ def test_task_completion_loss_falls():
     scorer = TaskCompletionScorer(encoder.latent_dim, hidden=32)
     cloud = torch.rand(32, 40, 3)
     target = (cloud[:, :, 0].mean(-1) > 0.5).float()  # completion depends on where the points are
-    rows = TensorDict({keys.POINT_CLOUD: cloud, keys.AGENT_POS: torch.rand(32, 4), keys.COMPLETION_TARGET: target}, [32])
+    rows = TensorDict(
+        {keys.POINT_CLOUD: cloud, keys.AGENT_POS: torch.rand(32, 4), keys.COMPLETION_TARGET: target}, [32]
+    )
     loss = TaskCompletionLoss(encoder, scorer)
     values = _train(lambda: loss(rows), [*encoder.parameters(), *scorer.parameters()])
     assert values[-1] < 0.5 * values[0]
@@ -79,7 +81,11 @@ def test_world_model_checkpoint_and_metrics(trained_world_model, collected, monk
     parts = load_world_model(path)
     assert parts.task == "reach"
     held = split_trajectories(5, cfg.held_out_fraction, cfg.seed)
-    assert torch.load(path, weights_only=False)["held_out_trajectories"] == held.nonzero().flatten().tolist() == parts.held_out_trajectories
+    assert (
+        torch.load(path, weights_only=False)["held_out_trajectories"]
+        == held.nonzero().flatten().tolist()
+        == parts.held_out_trajectories
+    )
     assert held.sum() == 2  # 40 % of 5 trajectories
     # the reported Brier score is the loaded scorer's, on the held-out trajectories' rows only
     rows = collected.rows
@@ -88,9 +94,13 @@ def test_world_model_checkpoint_and_metrics(trained_world_model, collected, monk
     # written in place batch by batch, a ragged last batch included: the rows' latents in one pass
     latents = encode_rows(parts.encoder, rows, batch_size=7)
     assert len(rows) % 7 and latents.dtype == torch.float32
-    torch.testing.assert_close(latents, parts.encoder(rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(
+        latents, parts.encoder(rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]), rtol=1e-5, atol=1e-6
+    )
     brier = ((probabilities - rows[keys.COMPLETION_TARGET][held_rows]) ** 2).mean().item()
-    assert parts.metrics["brier"] == pytest.approx(brier, abs=1e-6) and parts.metrics["held_out_rows"] == held_rows.sum()
+    assert (
+        parts.metrics["brier"] == pytest.approx(brier, abs=1e-6) and parts.metrics["held_out_rows"] == held_rows.sum()
+    )
     assert parts.metrics["wm_mse"] != parts.metrics["no_change_mse"]
     # the scorer ensemble's held-out metrics are the loaded ensemble's, on imagined latents of
     # the held-out windows' recorded chunks
@@ -99,9 +109,23 @@ def test_world_model_checkpoint_and_metrics(trained_world_model, collected, monk
     from torchrl_dalir.objectives.latent_dynamics import LATENT
     from torchrl_dalir.training.world_model import held_out_imagined_metrics
 
-    kept = (keys.ACTION, keys.IS_FINAL, keys.TRAJECTORY_ID, keys.STEP, keys.COMPLETION_TARGET, keys.TERMINAL_LABEL, keys.QUALITY)
+    kept = (
+        keys.ACTION,
+        keys.IS_FINAL,
+        keys.TRAJECTORY_ID,
+        keys.STEP,
+        keys.COMPLETION_TARGET,
+        keys.TERMINAL_LABEL,
+        keys.QUALITY,
+    )
     latent_rows = TensorDict({LATENT: encode_rows(parts.encoder, rows), **{k: rows[k] for k in kept}}, [len(rows)])
-    windows = TrajectoryWindows(TrajectoryDataset(collected.root, collected.meta, latent_rows), obs_steps=1, horizon=8, future_offset=8, observation_keys=(LATENT,))
+    windows = TrajectoryWindows(
+        TrajectoryDataset(collected.root, collected.meta, latent_rows),
+        obs_steps=1,
+        horizon=8,
+        future_offset=8,
+        observation_keys=(LATENT,),
+    )
     batch = windows[held[latent_rows[keys.TRAJECTORY_ID][windows.anchors]].nonzero().squeeze(-1)]
     batch[LATENT] = batch[LATENT][:, -1]
     imagined = held_out_imagined_metrics(parts.scorer, parts.ensemble, parts.world_model, batch)
@@ -115,7 +139,9 @@ def test_world_model_checkpoint_and_metrics(trained_world_model, collected, monk
 def test_reranking_actor_from_checkpoints(trained_world_model, tmp_path):
     _, wm_path, policy_path = trained_world_model
     actor = RerankingActor.from_checkpoints(policy_path, wm_path, num_candidates=3)
-    assert load_world_model(wm_path).policy_digest == weights_digest(load_policy(policy_path))  # checked on every pairing
+    assert load_world_model(wm_path).policy_digest == weights_digest(
+        load_policy(policy_path)
+    )  # checked on every pairing
     obs = TensorDict({keys.POINT_CLOUD: torch.rand(2, 2, 64, 3), keys.AGENT_POS: torch.rand(2, 2, 4)}, [2])
     assert actor(obs)[keys.ACTION_CHUNK].shape == (2, 16, 4)
     state = torch.load(wm_path, weights_only=False)
@@ -134,7 +160,10 @@ def test_dense_reward_oracle_scorer(trained_world_model):
     state = torch.load(path, weights_only=False)
     assert state["config"]["scorer_target"] == "dense_reward"
     # same data, same seed: only the scorer's targets differ
-    assert not torch.equal(state["scorer_state"]["net.0.weight"], torch.load(sparse_path, weights_only=False)["scorer_state"]["net.0.weight"])
+    assert not torch.equal(
+        state["scorer_state"]["net.0.weight"],
+        torch.load(sparse_path, weights_only=False)["scorer_state"]["net.0.weight"],
+    )
     with pytest.raises(ValueError, match="scorer_target"):
         dataclasses.replace(cfg, scorer_target="reward")
     with pytest.raises(ValueError, match="no oracle on door: its dense reward grows with the palm-to-handle distance"):
@@ -152,8 +181,10 @@ def test_frozen_encoder_keeps_the_policys_encoder_and_trains_the_scorer_on_its_l
     policy_encoder = LatentEncoder.from_policy(load_policy(policy_path))
     for name, value in policy_encoder.state_dict().items():
         assert torch.equal(parts.encoder.state_dict()[name], value), name
-    assert not torch.equal(parts.encoder.state_dict()["point_encoder.point_mlp.0.weight"],
-                           load_world_model(finetuned_path).encoder.state_dict()["point_encoder.point_mlp.0.weight"])
+    assert not torch.equal(
+        parts.encoder.state_dict()["point_encoder.point_mlp.0.weight"],
+        load_world_model(finetuned_path).encoder.state_dict()["point_encoder.point_mlp.0.weight"],
+    )
     assert torch.load(path, weights_only=False)["encoder_mode"] == "frozen"
     with pytest.raises(ValueError, match="encoder"):
         dataclasses.replace(cfg, encoder="thawed")
@@ -178,11 +209,14 @@ def test_extra_data_joins_the_mixed_data(trained_world_model, collected):
 def test_the_scorer_ensemble_can_learn_from_chosen_sources_only(trained_world_model, collected):
     cfg, path, _ = trained_world_model
     assert load_world_model(path).metrics["ensemble_windows"] == sum(  # every training window by default
-        len(collected.trajectory(i)) - 1 for i in (1, 2, 3))  # trajectories 0 and 4 are held out (seed 0)
+        len(collected.trajectory(i)) - 1 for i in (1, 2, 3)
+    )  # trajectories 0 and 4 are held out (seed 0)
     noisy = dataclasses.replace(cfg, ensemble_sources=["expert_noisy"], ensemble_steps=5)
     assert noisy.run_dir().name == "seed0_ens-expert_noisy"
     parts = load_world_model(train_world_model(noisy))
-    assert parts.metrics["ensemble_windows"] == sum(len(collected.trajectory(i)) - 1 for i in (2, 3))  # the noisy experts'
+    assert parts.metrics["ensemble_windows"] == sum(
+        len(collected.trajectory(i)) - 1 for i in (2, 3)
+    )  # the noisy experts'
     with pytest.raises(ValueError, match="no source \\['teleop'\\]"):
         train_world_model(dataclasses.replace(cfg, ensemble_sources=["teleop"]))
     with pytest.raises(ValueError, match="no training trajectory of the sources \\['still'\\]"):

@@ -23,7 +23,9 @@ from pathlib import Path
 
 # Allocations up to 4 GiB come from the heap and freed memory stays there for reuse.
 MALLOC_TUNABLES = "glibc.malloc.mmap_threshold=4294967296:glibc.malloc.trim_threshold=4294967296"
-SWITCH = "DALIR_MALLOC"  # "system": keep glibc's defaults; anything else (the default): re-execute under MALLOC_TUNABLES
+SWITCH = (
+    "DALIR_MALLOC"  # "system": keep glibc's defaults; anything else (the default): re-execute under MALLOC_TUNABLES
+)
 
 
 def tuned_environment(environ: dict[str, str] | None = None) -> dict[str, str] | None:
@@ -32,7 +34,12 @@ def tuned_environment(environ: dict[str, str] | None = None) -> dict[str, str] |
     previous re-execution)."""
     environ = dict(os.environ if environ is None else environ)
     tunables = environ.get("GLIBC_TUNABLES", "")
-    if sys.platform != "linux" or platform.libc_ver()[0] != "glibc" or environ.get(SWITCH) == "system" or "glibc.malloc.mmap_threshold" in tunables:
+    if (
+        sys.platform != "linux"
+        or platform.libc_ver()[0] != "glibc"
+        or environ.get(SWITCH) == "system"
+        or "glibc.malloc.mmap_threshold" in tunables
+    ):
         return None
     environ["GLIBC_TUNABLES"] = f"{tunables}:{MALLOC_TUNABLES}" if tunables else MALLOC_TUNABLES
     return environ

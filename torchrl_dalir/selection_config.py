@@ -49,13 +49,19 @@ class SelectionConfig:
         check_choice("selection rule", self.rule, RULES)
         check_choice("selection scorer", self.scorer, SCORERS)
         if self.k < 0 or self.temperature <= 0 or math.isnan(self.margin) or not 0 < self.fraction <= 1:
-            raise ValueError(f"need k >= 0, temperature > 0, a margin that is a number and a fraction in (0, 1]; got {self}")
+            raise ValueError(
+                f"need k >= 0, temperature > 0, a margin that is a number and a fraction in (0, 1]; got {self}"
+            )
 
     @property
     def name(self) -> str:
         """A short, unique description, e.g. ``margin(ensemble, k=1, margin=0.02)``."""
-        settings = {"pessimistic": f", k={self.k:g}", "softmax": f", T={self.temperature:g}",
-                    "margin": f", k={self.k:g}, margin={self.margin:g}", "trust": f", fraction={self.fraction:g}"}.get(self.rule, "")
+        settings = {
+            "pessimistic": f", k={self.k:g}",
+            "softmax": f", T={self.temperature:g}",
+            "margin": f", k={self.k:g}, margin={self.margin:g}",
+            "trust": f", fraction={self.fraction:g}",
+        }.get(self.rule, "")
         return f"{self.rule}({self.scorer}{settings})"
 
     @property

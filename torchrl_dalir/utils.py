@@ -91,8 +91,10 @@ def writable_dir(path: str | Path, setting: str = "out") -> Path:
         with tempfile.TemporaryFile(dir=path):
             pass
     except OSError as error:
-        raise ValueError(f"cannot write results to the folder {path} ({error.strerror or error}): "
-                         f"pass {setting}=<a folder you can write to>") from None
+        raise ValueError(
+            f"cannot write results to the folder {path} ({error.strerror or error}): "
+            f"pass {setting}=<a folder you can write to>"
+        ) from None
     return path
 
 
@@ -124,8 +126,10 @@ def git_commit(folder: str | Path = ".") -> str | None:
     (``None`` outside a git checkout or without git), to record which code made a result."""
     git = ["git", "-C", str(folder)]
     try:
-        head, changed = (subprocess.run(git + args, capture_output=True, text=True, check=True).stdout.strip()
-                         for args in (["rev-parse", "HEAD"], ["status", "--porcelain", "--untracked-files=no"]))
+        head, changed = (
+            subprocess.run(git + args, capture_output=True, text=True, check=True).stdout.strip()
+            for args in (["rev-parse", "HEAD"], ["status", "--porcelain", "--untracked-files=no"])
+        )
         return head + ("+dirty" if changed else "")
     except (OSError, subprocess.CalledProcessError):
         return None

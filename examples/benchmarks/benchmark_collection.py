@@ -49,14 +49,22 @@ def main(argv: list[str]) -> None:
     cfg: Config = parse_config(Config, argv)
     rows = []
     # a local Ray instance gets a CPU per actor, as the local backend starts a process per worker
-    ray_init_config = {"address": cfg.ray_address} if cfg.ray_address else {"num_cpus": max(cfg.workers), "include_dashboard": False}
+    ray_init_config = (
+        {"address": cfg.ray_address} if cfg.ray_address else {"num_cpus": max(cfg.workers), "include_dashboard": False}
+    )
     for backend, workers in itertools.product(cfg.backends, cfg.workers):
         scratch = Path(tempfile.mkdtemp(prefix="dalir_bench_"))
         try:
             start = time.perf_counter()
             dataset = collect(
-                cfg.task, scratch, [Source("noisy_expert", cfg.trajectories, noise_scale=cfg.noise_scale)],
-                num_workers=workers, chunk_size=cfg.trajectories, progress=False, backend=backend, ray_init_config=ray_init_config,
+                cfg.task,
+                scratch,
+                [Source("noisy_expert", cfg.trajectories, noise_scale=cfg.noise_scale)],
+                num_workers=workers,
+                chunk_size=cfg.trajectories,
+                progress=False,
+                backend=backend,
+                ray_init_config=ray_init_config,
             )
             seconds = time.perf_counter() - start
             steps = sum(s["env_steps"] for s in dataset.meta.shards)
@@ -64,15 +72,31 @@ def main(argv: list[str]) -> None:
             size = sum(f.stat().st_size for f in (scratch / "rows").rglob("*") if f.is_file())
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
-        rows.append({"backend": backend, "workers": workers, "env_steps": steps, "seconds": round(seconds, 1), "steps_per_s": round(steps / seconds, 1),
-                     "collecting_s": round(collecting, 1), "collecting_steps_per_s": round(steps / collecting, 1),
-                     "trajectories": cfg.trajectories, "bytes_per_trajectory": size // cfg.trajectories})
-        print(f"{cfg.task}: {backend}, {workers} worker(s): {steps} env steps in {seconds:.1f} s = {steps / seconds:.0f} steps/s "
-              f"({steps / collecting:.0f} steps/s after {seconds - collecting:.1f} s of start-up); "
-              f"{size / cfg.trajectories / 2**20:.2f} MiB per trajectory on disk", flush=True)
+        rows.append(
+            {
+                "backend": backend,
+                "workers": workers,
+                "env_steps": steps,
+                "seconds": round(seconds, 1),
+                "steps_per_s": round(steps / seconds, 1),
+                "collecting_s": round(collecting, 1),
+                "collecting_steps_per_s": round(steps / collecting, 1),
+                "trajectories": cfg.trajectories,
+                "bytes_per_trajectory": size // cfg.trajectories,
+            }
+        )
+        print(
+            f"{cfg.task}: {backend}, {workers} worker(s): {steps} env steps in {seconds:.1f} s "
+            f"= {steps / seconds:.0f} steps/s "
+            f"({steps / collecting:.0f} steps/s after {seconds - collecting:.1f} s of start-up); "
+            f"{size / cfg.trajectories / 2**20:.2f} MiB per trajectory on disk",
+            flush=True,
+        )
     atomic_write(Path(cfg.out) / f"collection_{cfg.task}.json", json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

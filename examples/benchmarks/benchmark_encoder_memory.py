@@ -52,7 +52,9 @@ def main(argv: list[str]) -> None:
     policy = make_policy(policy_cfg.resolved().model, action_dim=4, state_dim=4)
     policy.fit_normalizers(torch.rand(100, 3), torch.rand(100, 4), torch.rand(100, 4))
     encoder = LatentEncoder.from_policy(policy).eval().requires_grad_(False)
-    rows = TensorDict({keys.POINT_CLOUD: torch.rand(cfg.rows, cfg.num_points, 3), keys.AGENT_POS: torch.rand(cfg.rows, 4)}, [cfg.rows])
+    rows = TensorDict(
+        {keys.POINT_CLOUD: torch.rand(cfg.rows, cfg.num_points, 3), keys.AGENT_POS: torch.rand(cfg.rows, 4)}, [cfg.rows]
+    )
 
     kept = []
     before = resource.getrusage(resource.RUSAGE_SELF)
@@ -61,12 +63,19 @@ def main(argv: list[str]) -> None:
         kept.append(encode_rows(encoder, rows, cfg.batch_size))
     seconds = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_SELF)
-    result = {"malloc": os.environ.get(SWITCH) or "default", "seconds": seconds, "peak_rss_gib": after.ru_maxrss / 2**20,
-              "peak_rss_before_gib": before.ru_maxrss / 2**20, "minor_faults_m": (after.ru_minflt - before.ru_minflt) / 1e6,
-              "config": config_dict(cfg)}
-    print(f"malloc {result['malloc']}: {cfg.passes} passes over {cfg.rows} rows in {seconds:.1f} s; peak resident memory "
-          f"{result['peak_rss_gib']:.2f} GiB ({result['peak_rss_before_gib']:.2f} before the passes); "
-          f"{result['minor_faults_m']:.2f} M minor page faults")
+    result = {
+        "malloc": os.environ.get(SWITCH) or "default",
+        "seconds": seconds,
+        "peak_rss_gib": after.ru_maxrss / 2**20,
+        "peak_rss_before_gib": before.ru_maxrss / 2**20,
+        "minor_faults_m": (after.ru_minflt - before.ru_minflt) / 1e6,
+        "config": config_dict(cfg),
+    }
+    print(
+        f"malloc {result['malloc']}: {cfg.passes} passes over {cfg.rows} rows in {seconds:.1f} s; peak resident memory "
+        f"{result['peak_rss_gib']:.2f} GiB ({result['peak_rss_before_gib']:.2f} before the passes); "
+        f"{result['minor_faults_m']:.2f} M minor page faults"
+    )
     atomic_write(Path(cfg.out), json.dumps(result, indent=1))
 
 

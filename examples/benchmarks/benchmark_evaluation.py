@@ -54,7 +54,11 @@ def timed(actor, task: str, cfg: Config, **env_kwargs) -> tuple[list[dict], dict
     result = evaluate(actor, task, cfg.episodes, cfg.seed, progress=False, **env_kwargs)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     steps = sum(e.steps for e in result.episodes)
-    return result.to_dict()["episodes"], {"env_steps": steps, "wall_ms_per_step": 1000 * wall / steps, "cpu_ms_per_step": 1000 * cpu / steps}
+    return result.to_dict()["episodes"], {
+        "env_steps": steps,
+        "wall_ms_per_step": 1000 * wall / steps,
+        "cpu_ms_per_step": 1000 * cpu / steps,
+    }
 
 
 def main(argv: list[str]) -> None:
@@ -63,25 +67,42 @@ def main(argv: list[str]) -> None:
     policy = load_policy(cfg.policy_checkpoint)
     actors = {"base policy": receding_horizon(policy)}
     if cfg.world_model:
-        actors["DALI-R"] = receding_horizon(RerankingActor.on_policy(policy, cfg.world_model, num_candidates=cfg.num_candidates, seed=0))
+        actors["DALI-R"] = receding_horizon(
+            RerankingActor.on_policy(policy, cfg.world_model, num_candidates=cfg.num_candidates, seed=0)
+        )
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps}
     rows = []
     for name, actor in actors.items():
-        evaluate(actor, policy.task, 1, cfg.seed, progress=False, max_steps=2 * policy.config.action_steps, **env_kwargs)  # warm-up
+        evaluate(
+            actor, policy.task, 1, cfg.seed, progress=False, max_steps=2 * policy.config.action_steps, **env_kwargs
+        )  # warm-up
         every_records, every = timed(actor, policy.task, cfg, decision_period=1, **env_kwargs)
         lazy_records, lazy = timed(actor, policy.task, cfg, **env_kwargs)
         if lazy_records != every_records:
             raise RuntimeError(f"{name}: the episodes differ between the two ways of rendering")
-        row = {"method": name, "every_step": every, "decisions_only": lazy,
-               "cpu_speedup": every["cpu_ms_per_step"] / lazy["cpu_ms_per_step"], "wall_speedup": every["wall_ms_per_step"] / lazy["wall_ms_per_step"]}
+        row = {
+            "method": name,
+            "every_step": every,
+            "decisions_only": lazy,
+            "cpu_speedup": every["cpu_ms_per_step"] / lazy["cpu_ms_per_step"],
+            "wall_speedup": every["wall_ms_per_step"] / lazy["wall_ms_per_step"],
+        }
         rows.append(row)
-        print(f"{policy.task}, {name}, {every['env_steps']} env steps (the same episodes both ways): clouds at every step "
-              f"{every['wall_ms_per_step']:.1f} ms/step wall ({every['cpu_ms_per_step']:.1f} CPU), only where decisions read them "
-              f"{lazy['wall_ms_per_step']:.1f} ms ({lazy['cpu_ms_per_step']:.1f} CPU): {row['wall_speedup']:.2f}x wall, "
-              f"{row['cpu_speedup']:.2f}x CPU", flush=True)
-    atomic_write(Path(cfg.out) / f"evaluation_{policy.task}.json", json.dumps({"config": vars(cfg), "rows": rows}, indent=1))
+        print(
+            f"{policy.task}, {name}, {every['env_steps']} env steps (the same episodes both ways): "
+            f"clouds at every step {every['wall_ms_per_step']:.1f} ms/step wall ({every['cpu_ms_per_step']:.1f} CPU), "
+            "only where decisions read them "
+            f"{lazy['wall_ms_per_step']:.1f} ms ({lazy['cpu_ms_per_step']:.1f} CPU): {row['wall_speedup']:.2f}x wall, "
+            f"{row['cpu_speedup']:.2f}x CPU",
+            flush=True,
+        )
+    atomic_write(
+        Path(cfg.out) / f"evaluation_{policy.task}.json", json.dumps({"config": vars(cfg), "rows": rows}, indent=1)
+    )
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

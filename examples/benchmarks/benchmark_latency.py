@@ -54,34 +54,54 @@ def main(argv: list[str]) -> None:
     torch.set_num_threads(cfg.threads)
     wm = parse_config(WorldModelTrainingConfig, [f"preset={cfg.preset}"], WORLD_MODEL_PRESETS)  # checks the preset name
     model_preset = POLICY_PRESETS[cfg.preset].get("model", {})
-    obs = TensorDict({keys.POINT_CLOUD: torch.rand(1, 2, cfg.num_points, 3), keys.AGENT_POS: torch.rand(1, 2, cfg.state_dim)}, [1])
+    obs = TensorDict(
+        {keys.POINT_CLOUD: torch.rand(1, 2, cfg.num_points, 3), keys.AGENT_POS: torch.rand(1, 2, cfg.state_dim)}, [1]
+    )
     rows = []
     for kind in cfg.kinds:
         policy_cfg = PolicyConfig(kind=kind, **model_preset)
         policy_cfg.euler_steps = cfg.euler_steps
         policy = make_policy(policy_cfg, cfg.action_dim, cfg.state_dim).eval()
         encoder = LatentEncoder.from_policy(policy)
-        world_model = LatentWorldModel(encoder.latent_dim, cfg.action_dim, policy_cfg.action_steps, wm.wm_hidden, wm.wm_layers, wm.wm_heads)
+        world_model = LatentWorldModel(
+            encoder.latent_dim, cfg.action_dim, policy_cfg.action_steps, wm.wm_hidden, wm.wm_layers, wm.wm_heads
+        )
         scorer = TaskCompletionScorer(encoder.latent_dim, wm.scorer_hidden)
         for precision in cfg.precisions:
             dtype = autocast_dtype(precision, "cpu")
             with torch.autocast("cpu", dtype=dtype or torch.bfloat16, enabled=dtype is not None):
                 base_ms = median_ms(lambda: policy(obs.clone()), cfg.warmup, cfg.repeats)
-                row = {"kind": kind, "precision": precision, "steps": policy_cfg.euler_steps if kind == "fm" else policy_cfg.ddim_steps,
-                       "base_policy_ms": round(base_ms, 2)}
+                row = {
+                    "kind": kind,
+                    "precision": precision,
+                    "steps": policy_cfg.euler_steps if kind == "fm" else policy_cfg.ddim_steps,
+                    "base_policy_ms": round(base_ms, 2),
+                }
                 for n in cfg.candidates:
                     actor = RerankingActor(policy, encoder, world_model, scorer, num_candidates=n)
                     row[f"dalir_{n}_ms"] = round(median_ms(lambda: actor(obs.clone()), cfg.warmup, cfg.repeats), 2)
             rows.append(row)
             print(json.dumps(row), flush=True)
-    header = "| N_cand | " + " | ".join(f"{r['kind'].upper()} ({r['precision']}) + DALI-R ms (x base)" for r in rows) + " |"
-    lines = [header, "|" + " --- |" * (len(rows) + 1), "| base policy | " + " | ".join(f"{r['base_policy_ms']:.1f} (1.00)" for r in rows) + " |"]
+    header = (
+        "| N_cand | " + " | ".join(f"{r['kind'].upper()} ({r['precision']}) + DALI-R ms (x base)" for r in rows) + " |"
+    )
+    lines = [
+        header,
+        "|" + " --- |" * (len(rows) + 1),
+        "| base policy | " + " | ".join(f"{r['base_policy_ms']:.1f} (1.00)" for r in rows) + " |",
+    ]
     for n in cfg.candidates:
-        lines.append(f"| {n} | " + " | ".join(f"{r[f'dalir_{n}_ms']:.1f} ({r[f'dalir_{n}_ms'] / r['base_policy_ms']:.2f})" for r in rows) + " |")
+        lines.append(
+            f"| {n} | "
+            + " | ".join(f"{r[f'dalir_{n}_ms']:.1f} ({r[f'dalir_{n}_ms'] / r['base_policy_ms']:.2f})" for r in rows)
+            + " |"
+        )
     print("\n".join(lines))
     atomic_write(cfg.out, json.dumps({"config": config_dict(cfg), "rows": rows, "table": lines}, indent=1))
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

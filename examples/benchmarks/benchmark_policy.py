@@ -82,7 +82,9 @@ def main(argv: list[str]) -> None:
         demos = TrajectoryDataset.load(Path(cfg.data) / policy.task / "demos", task=policy.task)
         windows = TrajectoryWindows(demos, policy.config.obs_steps, policy.config.horizon)
         spread = torch.linspace(0, len(windows) - 1, cfg.observations).long().tolist()
-        observations = [(w[keys.POINT_CLOUD], w[keys.AGENT_POS]) for w in (windows[[i]] for i in spread)]  # [1, To, N, 3], [1, To, D]
+        observations = [
+            (w[keys.POINT_CLOUD], w[keys.AGENT_POS]) for w in (windows[[i]] for i in spread)
+        ]  # [1, To, N, 3], [1, To, D]
         cloud, agent_pos = observations[0]
         steps_to_time = cfg.nfe if policy.config.kind == "fm" else [policy.config.ddim_steps]
         for steps in steps_to_time:
@@ -91,12 +93,22 @@ def main(argv: list[str]) -> None:
             n = cfg.candidates
             cond1 = policy.encode(cloud, agent_pos)
             row = {
-                "checkpoint": path, "kind": policy.config.kind, "steps": steps,
+                "checkpoint": path,
+                "kind": policy.config.kind,
+                "steps": steps,
                 "encoder_ms_batch1": median_ms(lambda: policy.encode(cloud, agent_pos), cfg.warmup, cfg.repeats),
                 "generator_ms_batch1": median_ms(lambda: policy.sample(cond1, g), cfg.warmup, cfg.repeats),
-                "decision_ms_batch1": median_ms(lambda: policy.sample(policy.encode(cloud, agent_pos), g), cfg.warmup, cfg.repeats),
-                f"encoder_ms_batch{n}": median_ms(lambda: policy.encode(cloud.expand(n, -1, -1, -1), agent_pos.expand(n, -1, -1)), cfg.warmup, cfg.repeats),
-                f"generator_ms_batch{n}": median_ms(lambda: policy.sample(cond1.expand(n, -1), g), cfg.warmup, cfg.repeats),
+                "decision_ms_batch1": median_ms(
+                    lambda: policy.sample(policy.encode(cloud, agent_pos), g), cfg.warmup, cfg.repeats
+                ),
+                f"encoder_ms_batch{n}": median_ms(
+                    lambda: policy.encode(cloud.expand(n, -1, -1, -1), agent_pos.expand(n, -1, -1)),
+                    cfg.warmup,
+                    cfg.repeats,
+                ),
+                f"generator_ms_batch{n}": median_ms(
+                    lambda: policy.sample(cond1.expand(n, -1), g), cfg.warmup, cfg.repeats
+                ),
             }
             # Diversity of n chunks from one observation, averaged over observations.
             chunks = [candidate_chunks(policy, c, a, n, cfg.dropout, g) for c, a in observations]
@@ -104,13 +116,18 @@ def main(argv: list[str]) -> None:
                 row[f"diversity_{name}"] = sum(mean_pairwise_distance(c[name]) for c in chunks) / len(chunks)
             if cfg.plot:
                 run = Path(path).parent.name  # e.g. fm_seed0: two seeds of a task draw two files
-                plot_candidate_spread(chunks[len(chunks) // 2], Path(cfg.out).parent / f"candidates_{policy.task}_{run}_steps{steps}.png",
-                                      title=f"{policy.task} {run}, {steps} steps\n{n} chunks from one observation")
+                plot_candidate_spread(
+                    chunks[len(chunks) // 2],
+                    Path(cfg.out).parent / f"candidates_{policy.task}_{run}_steps{steps}.png",
+                    title=f"{policy.task} {run}, {steps} steps\n{n} chunks from one observation",
+                )
             rows.append(row)
             print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
     atomic_write(cfg.out, json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

@@ -49,8 +49,14 @@ def main(argv: list[str]) -> None:
     policy.fit_normalizers(torch.rand(100, 3), torch.rand(100, 4), torch.rand(100, 4))
     loss_module = FlowMatchingLoss(policy)
     optimizer = torch.optim.AdamW(policy.parameters(), lr=1e-4)
-    batch = TensorDict({keys.POINT_CLOUD: torch.rand(cfg.batch_size, 2, cfg.num_points, 3), keys.AGENT_POS: torch.rand(cfg.batch_size, 2, 4),
-                        keys.ACTION_CHUNK: torch.rand(cfg.batch_size, 16, 4)}, [cfg.batch_size])
+    batch = TensorDict(
+        {
+            keys.POINT_CLOUD: torch.rand(cfg.batch_size, 2, cfg.num_points, 3),
+            keys.AGENT_POS: torch.rand(cfg.batch_size, 2, 4),
+            keys.ACTION_CHUNK: torch.rand(cfg.batch_size, 16, 4),
+        },
+        [cfg.batch_size],
+    )
 
     def step(dtype) -> float:
         start = time.perf_counter()
@@ -70,10 +76,18 @@ def main(argv: list[str]) -> None:
                 seconds[name].append(value)
     medians = {name: statistics.median(values) for name, values in seconds.items()}
     auto = autocast_dtype("auto", "cpu")
-    result = {"cpu_capability": torch.backends.cpu.get_cpu_capability(), "native_bf16": native_bf16("cpu"),
-              "auto_picks": "bf16" if auto is not None else "fp32", "median_seconds": medians,
-              "bf16_over_fp32": medians["bf16"] / medians["fp32"], "config": config_dict(cfg)}
-    print(f"CPU capability {result['cpu_capability']}, native bf16: {result['native_bf16']}; precision=auto picks {result['auto_picks']}")
+    result = {
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "native_bf16": native_bf16("cpu"),
+        "auto_picks": "bf16" if auto is not None else "fp32",
+        "median_seconds": medians,
+        "bf16_over_fp32": medians["bf16"] / medians["fp32"],
+        "config": config_dict(cfg),
+    }
+    print(
+        f"CPU capability {result['cpu_capability']}, native bf16: {result['native_bf16']}; "
+        f"precision=auto picks {result['auto_picks']}"
+    )
     for name, value in medians.items():
         print(f"{name}: {value:.3f} s per training step (median of {cfg.repeats})")
     print(f"bf16 / fp32: {result['bf16_over_fp32']:.2f}x")
@@ -81,5 +95,7 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

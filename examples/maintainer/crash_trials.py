@@ -345,7 +345,8 @@ def main(argv: list[str]) -> None:
         print(f"[crash_trials] trial {i}: killed in {stages} -> {verdict}", flush=True)
 
     print(
-        "\n| trial | kill | stage killed | after (s) | identical | differing artifacts |\n| --- | --- | --- | --- | --- | --- |"
+        "\n| trial | kill | stage killed | after (s) | identical | differing artifacts |"
+        "\n| --- | --- | --- | --- | --- | --- |"
     )
     for r in report["trials"]:
         for j, k in enumerate(r["kills"]):
@@ -355,12 +356,15 @@ def main(argv: list[str]) -> None:
                 else ("", "")
             )
             print(
-                f"| {r['trial']} | {j} | {k['killed_in_stage']} | {k['killed_after_seconds']:.0f} | {verdict[0]} | {verdict[1]} |"
+                f"| {r['trial']} | {j} | {k['killed_in_stage']} | {k['killed_after_seconds']:.0f} "
+                f"| {verdict[0]} | {verdict[1]} |"
             )
     kills = [k for r in report["trials"] for k in r["kills"]]
     print(
-        f"\n{sum(r['identical'] for r in report['trials'])} of {cfg.trials} trials identical after {len(kills)} kills in stages "
-        f"{sorted({k['killed_in_stage'] for k in kills if k['killed_in_stage']})}; {report['wall_seconds'] / 60:.1f} min; "
+        f"\n{sum(r['identical'] for r in report['trials'])} of {cfg.trials} trials identical "
+        f"after {len(kills)} kills in stages "
+        f"{sorted({k['killed_in_stage'] for k in kills if k['killed_in_stage']})}; "
+        f"{report['wall_seconds'] / 60:.1f} min; "
         f"report: {out / 'crash_trials.json'}"
     )
 

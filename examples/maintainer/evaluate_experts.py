@@ -46,14 +46,26 @@ def main(argv: list[str]) -> None:
             start = time.perf_counter()
             result = evaluate(policy, task, cfg.episodes, cfg.seed, render=False, progress=False)
             steps_per_s = sum(e.steps for e in result.episodes) / (time.perf_counter() - start)
-            rows.append({"task": task, "noise_scale": scale, "success_rate": result.success_rate, "episodes": cfg.episodes,
-                         "steps_per_s": round(steps_per_s, 1)})
-            print(f"{task:18s} noise {scale:5.2f}  success {result.success_rate:6.1%}  ({cfg.episodes} episodes, "
-                  f"{steps_per_s:.0f} env steps/s with the env)", flush=True)
+            rows.append(
+                {
+                    "task": task,
+                    "noise_scale": scale,
+                    "success_rate": result.success_rate,
+                    "episodes": cfg.episodes,
+                    "steps_per_s": round(steps_per_s, 1),
+                }
+            )
+            print(
+                f"{task:18s} noise {scale:5.2f}  success {result.success_rate:6.1%}  ({cfg.episodes} episodes, "
+                f"{steps_per_s:.0f} env steps/s with the env)",
+                flush=True,
+            )
     out = Path(cfg.out)
     atomic_write(out / "experts.json", json.dumps({"config": config_dict(cfg), "rows": rows}, indent=2))
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

@@ -130,7 +130,10 @@ def make_modules(cfg: PenTrainConfig):
         distribution_kwargs={"low": -1.0, "high": 1.0},
         return_log_prob=True,
     )
-    critic = ValueOperator(MLP(in_features=OBS_DIM, out_features=1, num_cells=[256, 256], activation_class=nn.Tanh), in_keys=["observation"])
+    critic = ValueOperator(
+        MLP(in_features=OBS_DIM, out_features=1, num_cells=[256, 256], activation_class=nn.Tanh),
+        in_keys=["observation"],
+    )
     return actor, critic
 
 
@@ -187,8 +190,14 @@ def main(argv: list[str]) -> None:
     actor, critic = make_modules(cfg)
     advantage = GAE(gamma=cfg.gamma, lmbda=cfg.lmbda, value_network=critic, average_gae=True)
     loss_module = ClipPPOLoss(
-        actor, critic, clip_epsilon=cfg.clip_epsilon, entropy_bonus=cfg.entropy_coeff > 0,
-        entropy_coeff=cfg.entropy_coeff, critic_coeff=0.5, loss_critic_type="l2", normalize_advantage=True,
+        actor,
+        critic,
+        clip_epsilon=cfg.clip_epsilon,
+        entropy_bonus=cfg.entropy_coeff > 0,
+        entropy_coeff=cfg.entropy_coeff,
+        critic_coeff=0.5,
+        loss_critic_type="l2",
+        normalize_advantage=True,
     )
     optim = torch.optim.Adam(loss_module.parameters(), lr=cfg.lr, eps=1e-5)
 
@@ -209,15 +218,30 @@ def main(argv: list[str]) -> None:
         csv_path.unlink()
 
     collector = Collector(
-        env, actor, frames_per_batch=frames_per_batch,
+        env,
+        actor,
+        frames_per_batch=frames_per_batch,
         total_frames=(num_iters - start_iter) * frames_per_batch,
     )
     buffer = ReplayBuffer(
         storage=LazyTensorStorage(frames_per_batch), sampler=SamplerWithoutReplacement(), batch_size=cfg.minibatch_size
     )
     eval_seeds = [cfg.seed * 7919 + 10_000 + i for i in range(cfg.eval_episodes)]
-    fields = ["iteration", "frames", "wall_s", "fps", "episodes", "train_success", "train_ep_len",
-              "loss_objective", "loss_critic", "log_std", "lr", "eval_success", "eval_ep_len"]
+    fields = [
+        "iteration",
+        "frames",
+        "wall_s",
+        "fps",
+        "episodes",
+        "train_success",
+        "train_ep_len",
+        "loss_objective",
+        "loss_critic",
+        "log_std",
+        "lr",
+        "eval_success",
+        "eval_ep_len",
+    ]
     new_csv = not csv_path.exists()
     csv_file = open(csv_path, "a", newline="")
     writer = csv.DictWriter(csv_file, fieldnames=fields)
@@ -257,14 +281,19 @@ def main(argv: list[str]) -> None:
         collector.update_policy_weights_()
         now = time.time()
         row = {
-            "iteration": iteration, "frames": iteration * frames_per_batch, "wall_s": round(now - t0, 1),
-            "fps": round(frames_per_batch / (now - t_iter), 1), "episodes": episodes,
+            "iteration": iteration,
+            "frames": iteration * frames_per_batch,
+            "wall_s": round(now - t0, 1),
+            "fps": round(frames_per_batch / (now - t_iter), 1),
+            "episodes": episodes,
             "train_success": round(train_success, 4),
             "train_ep_len": round(frames_per_batch / max(episodes, 1), 1),
             "loss_objective": round(stats["loss_objective"] / n_updates, 5),
             "loss_critic": round(stats["loss_critic"] / n_updates, 5),
             "log_std": round(float(actor.module[0].module[1].state_independent_scale.mean()), 4),
-            "lr": f"{lr:.2e}", "eval_success": "", "eval_ep_len": "",
+            "lr": f"{lr:.2e}",
+            "eval_success": "",
+            "eval_ep_len": "",
         }
         if iteration % cfg.eval_every == 0 or iteration == num_iters:
             policy = export_policy(actor, *vecnorm_stats(env))
@@ -272,8 +301,14 @@ def main(argv: list[str]) -> None:
             row["eval_success"], row["eval_ep_len"] = success, ep_len
             if success >= best["success"]:
                 best = {"success": success, "iteration": iteration}
-                policy.save(run_dir / "best_policy.pt", {"iteration": iteration, "eval_success": success, "config": config_dict(cfg)})
-            policy.save(run_dir / "last_policy.pt", {"iteration": iteration, "eval_success": success, "config": config_dict(cfg)})
+                policy.save(
+                    run_dir / "best_policy.pt",
+                    {"iteration": iteration, "eval_success": success, "config": config_dict(cfg)},
+                )
+            policy.save(
+                run_dir / "last_policy.pt",
+                {"iteration": iteration, "eval_success": success, "config": config_dict(cfg)},
+            )
         writer.writerow(row)
         csv_file.flush()
         pbar.update(1)
@@ -281,9 +316,16 @@ def main(argv: list[str]) -> None:
         if iteration % cfg.checkpoint_every == 0 or iteration == num_iters:
             save_checkpoint(
                 ckpt_path,
-                {"iteration": iteration, "loss": loss_module.state_dict(), "optim": optim.state_dict(),
-                 "vecnorm": env.transform.state_dict(), "torch_rng": torch.get_rng_state(), "best": best,
-                 "wall_s": now - t0, "config": config_dict(cfg)},
+                {
+                    "iteration": iteration,
+                    "loss": loss_module.state_dict(),
+                    "optim": optim.state_dict(),
+                    "vecnorm": env.transform.state_dict(),
+                    "torch_rng": torch.get_rng_state(),
+                    "best": best,
+                    "wall_s": now - t0,
+                    "config": config_dict(cfg),
+                },
             )
         t_iter = time.time()
     collector.shutdown()
@@ -294,9 +336,14 @@ def main(argv: list[str]) -> None:
         policy = PenExpertPolicy.load(best_path)
         meta = safe_torch_load(best_path)["metadata"]
         policy.save(cfg.output, meta)
-        print(f"exported iteration {best['iteration']} (training-seed success {best['success']:.2f}) to {cfg.output}", flush=True)
+        print(
+            f"exported iteration {best['iteration']} (training-seed success {best['success']:.2f}) to {cfg.output}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

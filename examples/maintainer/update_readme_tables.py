@@ -42,10 +42,16 @@ class Config:
 def main(argv: list[str]) -> None:
     cfg = parse_config(Config, argv)
     summarize = runpy.run_path(str(SUMMARIZE))
-    summarize["main"]([
-        f"out={cfg.out}", f"records=[{','.join(cfg.records)}]", f"variant={cfg.variant}",
-        f"tasks=[{','.join(cfg.tasks)}]", f"trusted_json={cfg.trusted_json}", f"table1_json={cfg.table1_json}",
-    ])
+    summarize["main"](
+        [
+            f"out={cfg.out}",
+            f"records=[{','.join(cfg.records)}]",
+            f"variant={cfg.variant}",
+            f"tasks=[{','.join(cfg.tasks)}]",
+            f"trusted_json={cfg.trusted_json}",
+            f"table1_json={cfg.table1_json}",
+        ]
+    )
     for name in cfg.files:
         path = Path(name)
         text = path.read_text(encoding="utf-8")

@@ -2,7 +2,8 @@
 within-decision AUC on held-out decisions that split (before any test episode).
 
     python examples/paper/branched_ranking.py policy=outputs/pipeline/policies/pick-place-wall/fm_seed0/checkpoint.pt
-    python examples/paper/branched_ranking.py policy=... episodes=30 num_candidates=8 json=docs/results/branched_ranking.json
+    python examples/paper/branched_ranking.py policy=... episodes=30 num_candidates=8 \\
+        json=docs/results/branched_ranking.json
 
 Collects (or resumes) the branched outcomes of ``policy`` under ``<out>/<task>/<run>/`` with
 :func:`~torchrl_dalir.data.branched.collect_branched`, then trains each scorer variant of
@@ -11,7 +12,6 @@ Collects (or resumes) the branched outcomes of ``policy`` under ``<out>/<task>/<
 the terminal-label loss) and ``outcome`` (the terminal-label loss alone), both on the current
 state and the chunk. Prints a markdown table; ``json`` writes it with the data's counts.
 """
-
 
 import json
 import sys
@@ -63,8 +63,15 @@ def main(argv: list[str]) -> dict:
     policy = load_policy(cfg.policy)
     run = Path(cfg.policy).parent.name
     start = time.perf_counter()
-    outcomes = collect_branched(policy, Path(cfg.out) / policy.task / run / cfg.generator, cfg.reranking(),
-                                episodes=cfg.episodes, stride=cfg.stride, seed=cfg.data_seed, progress=cfg.progress)
+    outcomes = collect_branched(
+        policy,
+        Path(cfg.out) / policy.task / run / cfg.generator,
+        cfg.reranking(),
+        episodes=cfg.episodes,
+        stride=cfg.stride,
+        seed=cfg.data_seed,
+        progress=cfg.progress,
+    )
     collection_seconds = time.perf_counter() - start
     split = outcomes.split_decisions()
     results = {}
@@ -72,15 +79,27 @@ def main(argv: list[str]) -> dict:
         _, metrics = train_ranking_scorer(outcomes, policy, replace(cfg.training, **VARIANTS[variant]))
         results[variant] = metrics
     print(f"{outcomes}: {int(split.sum())} of {len(outcomes)} decisions split; collected in {collection_seconds:.0f} s")
-    print("| variant | input | train AUC (split decisions) | held-out AUC (split decisions) |\n| --- | --- | --- | --- |")
+    print(
+        "| variant | input | train AUC (split decisions) | held-out AUC (split decisions) |\n| --- | --- | --- | --- |"
+    )
     for variant, m in results.items():
-        print(f"| {variant} | {m['config']['input']} | {m['train_auc']:.3f} ({m['train_split_decisions']}) | "
-              f"{m['held_out_auc']:.3f} ({m['held_out_split_decisions']}) |")
-    payload = {"command": "python examples/paper/branched_ranking.py " + " ".join(argv), "commit": git_commit(),
-               "torch_threads": torch.get_num_threads(), "config": asdict(cfg), "task": policy.task, "run": run,
-               "decisions": len(outcomes), "split_decisions": int(split.sum()),
-               "candidate_success_rate": float(outcomes.rows["success"].float().mean()),
-               "collection_seconds_this_attempt": round(collection_seconds), "variants": results}
+        print(
+            f"| {variant} | {m['config']['input']} | {m['train_auc']:.3f} ({m['train_split_decisions']}) | "
+            f"{m['held_out_auc']:.3f} ({m['held_out_split_decisions']}) |"
+        )
+    payload = {
+        "command": "python examples/paper/branched_ranking.py " + " ".join(argv),
+        "commit": git_commit(),
+        "torch_threads": torch.get_num_threads(),
+        "config": asdict(cfg),
+        "task": policy.task,
+        "run": run,
+        "decisions": len(outcomes),
+        "split_decisions": int(split.sum()),
+        "candidate_success_rate": float(outcomes.rows["success"].float().mean()),
+        "collection_seconds_this_attempt": round(collection_seconds),
+        "variants": results,
+    }
     if cfg.json:
         atomic_write(cfg.json, json.dumps(payload, indent=1) + "\n")
     return payload

@@ -32,7 +32,9 @@ TEST_SEED = 0  # the main job's test episodes: never measured here
 
 @dataclass
 class Config:
-    policies: list[str] = field(default_factory=list)  # policy checkpoints, .../<task>/<policy>_seed<seed>/checkpoint.pt
+    policies: list[str] = field(
+        default_factory=list
+    )  # policy checkpoints, .../<task>/<policy>_seed<seed>/checkpoint.pt
     # point dropout (the paper's), re-sampling the policy's noise from the clean observation, or Gaussian point noise
     generators: list[str] = field(default_factory=lambda: ["dropout", "clean"])
     dropout: float = RerankingConfig.dropout  # point dropout's probability
@@ -53,7 +55,9 @@ class Config:
         for name in self.generators:
             self.reranking(name)  # an unknown name fails here, before any episode
         if self.seed == TEST_SEED:
-            raise ValueError(f"seed={TEST_SEED} holds the test episodes; measure the ceiling on validation episodes (seed=1)")
+            raise ValueError(
+                f"seed={TEST_SEED} holds the test episodes; measure the ceiling on validation episodes (seed=1)"
+            )
         check_at_least("num_candidates", self.num_candidates, 2)
         check_at_least("episodes", self.episodes, 1)
         check_at_least("stride", self.stride, 1)
@@ -69,8 +73,13 @@ class Config:
 
     def settings(self) -> dict:
         """What an episode's outcome depends on, besides the policy: a resumed file must match it."""
-        return {"generators": {g: self.strength(g) for g in self.generators}, "num_candidates": self.num_candidates,
-                "seed": self.seed, "exhaustive": self.exhaustive, "stride": self.stride}
+        return {
+            "generators": {g: self.strength(g) for g in self.generators},
+            "num_candidates": self.num_candidates,
+            "seed": self.seed,
+            "exhaustive": self.exhaustive,
+            "stride": self.stride,
+        }
 
 
 def _run_name(path: str) -> str:
@@ -107,13 +116,29 @@ def measure(cfg: Config, checkpoint: str) -> dict:
             file.write(json.dumps(record) + "\n")
 
     generators = {g: candidate_generator(cfg.reranking(g)) for g in cfg.generators}
-    episodes += candidate_ceiling(policy, policy.task, generators, episodes=cfg.episodes, seed=cfg.seed,
-                                  num_candidates=cfg.num_candidates, exhaustive=cfg.exhaustive, stride=cfg.stride,
-                                  done=[r["episode"] for r in episodes], on_episode=append, progress=cfg.progress,
-                                  device=cfg.device)
+    episodes += candidate_ceiling(
+        policy,
+        policy.task,
+        generators,
+        episodes=cfg.episodes,
+        seed=cfg.seed,
+        num_candidates=cfg.num_candidates,
+        exhaustive=cfg.exhaustive,
+        stride=cfg.stride,
+        done=[r["episode"] for r in episodes],
+        on_episode=append,
+        progress=cfg.progress,
+        device=cfg.device,
+    )
     episodes = sorted((r for r in episodes if r["episode"] < cfg.episodes), key=lambda r: r["episode"])
-    return {"task": policy.task, "policy": policy.config.kind, "run": _run_name(checkpoint), "checkpoint": checkpoint,
-            **summarize_ceiling(episodes), "episode_outcomes": episodes}
+    return {
+        "task": policy.task,
+        "policy": policy.config.kind,
+        "run": _run_name(checkpoint),
+        "checkpoint": checkpoint,
+        **summarize_ceiling(episodes),
+        "episode_outcomes": episodes,
+    }
 
 
 def table(results: list[dict]) -> str:
@@ -121,10 +146,15 @@ def table(results: list[dict]) -> str:
     head = "| task | policy | run | episodes | base | " + " | ".join(f"oracle: {g}" for g in generators) + " |"
     lines = [head, "|" + " --- |" * (5 + len(generators))]
     for r in results:
-        cells = [f"{100 * e['oracle_success_rate']:.0f} % (+{e['failures_fixed']} of {e['failures']} failures)"
-                 for e in r["generators"].values()]
-        lines.append(f"| {r['task']} | {r['policy']} | {r['run']} | {r['episodes']} | {100 * r['base_success_rate']:.0f} % | "
-                     + " | ".join(cells) + " |")
+        cells = [
+            f"{100 * e['oracle_success_rate']:.0f} % (+{e['failures_fixed']} of {e['failures']} failures)"
+            for e in r["generators"].values()
+        ]
+        lines.append(
+            f"| {r['task']} | {r['policy']} | {r['run']} | {r['episodes']} | {100 * r['base_success_rate']:.0f} % | "
+            + " | ".join(cells)
+            + " |"
+        )
     return "\n".join(lines)
 
 
@@ -133,8 +163,13 @@ def main(argv: list[str]) -> list[dict]:
     results = [measure(cfg, checkpoint) for checkpoint in cfg.policies]
     print(table(results))
     if cfg.json:
-        payload = {"command": "python examples/paper/candidate_ceiling.py " + " ".join(argv), "commit": git_commit(),
-                   "torch_threads": torch.get_num_threads(), "config": asdict(cfg), "runs": results}
+        payload = {
+            "command": "python examples/paper/candidate_ceiling.py " + " ".join(argv),
+            "commit": git_commit(),
+            "torch_threads": torch.get_num_threads(),
+            "config": asdict(cfg),
+            "runs": results,
+        }
         atomic_write(cfg.json, json.dumps(payload, indent=1) + "\n")
     return results
 

@@ -46,28 +46,43 @@ BASE_INPUTS = ("episodes", "seed", "device", "actor_seed")  # what the base poli
 
 @dataclass
 class Config:
-    policies: list[str] = field(default_factory=lambda: ["outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"])
-    world_models: list[str] = field(default_factory=lambda: ["outputs/pipeline/world_models/fm/disassemble/seed0_frozen+explore_fm_seed0/world_model.pt"])
-    candidates: list[int] = field(default_factory=lambda: [4, 8, 16, 32])  # N (the paper's); N = 1 is the base policy itself
+    policies: list[str] = field(
+        default_factory=lambda: ["outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"]
+    )
+    world_models: list[str] = field(
+        default_factory=lambda: [
+            "outputs/pipeline/world_models/fm/disassemble/seed0_frozen+explore_fm_seed0/world_model.pt"
+        ]
+    )
+    candidates: list[int] = field(
+        default_factory=lambda: [4, 8, 16, 32]
+    )  # N (the paper's); N = 1 is the base policy itself
     methods: list[str] = field(default_factory=lambda: ["argmax"])  # among RERANKING
     episodes: int = 50
     seed: int = 0  # the evaluation seed: episodes never overlap data-generation episodes
     device: str = "cpu"
     dropout: float = RerankingConfig.dropout  # point-dropout probability of every candidate but the clean one
     actor_seed: int = 0
-    common_noise: bool = COMMON_NOISE  # the clean candidate draws the base policy's own noise: N = 1 replays the base policy
+    common_noise: bool = (
+        COMMON_NOISE  # the clean candidate draws the base policy's own noise: N = 1 replays the base policy
+    )
     out: str = "outputs/candidate_scaling"
 
     def __post_init__(self):
         if not self.methods or not self.candidates:
-            raise ValueError(f"methods and candidates need at least one entry each, got {self.methods} and {self.candidates}")
+            raise ValueError(
+                f"methods and candidates need at least one entry each, got {self.methods} and {self.candidates}"
+            )
         for method in self.methods:
             check_choice("methods", method, RERANKING)
         for n in self.candidates:
             check_at_least("candidates (N = 1 is the base policy, always run)", n, 2)
         check_evaluation_settings(self.episodes, self.seed, max(self.candidates), self.dropout)
         if len(self.policies) != len(self.world_models):
-            raise ValueError(f"{len(self.policies)} policies but {len(self.world_models)} world models: give one world model per policy")
+            raise ValueError(
+                f"{len(self.policies)} policies but {len(self.world_models)} world models: "
+                "give one world model per policy"
+            )
         self.candidates = sorted(set(self.candidates))
 
 
@@ -77,34 +92,68 @@ def evaluate_run(index: int, policy_path: str, world_model_path: str, cfg: Confi
     candidate (``dalir`` after a calibration that kept the base policy) replays the base policy's row,
     and two methods with the same rule share one row."""
     policy = load_policy(policy_path, cfg.device)
-    rules = {"argmax": SelectionConfig(), "dalir": load_world_model(world_model_path, policy=policy).selection, "random": None}
-    settings = {k: v for k, v in config_dict(cfg).items() if k not in ("policies", "world_models", "candidates", "methods", "out")}
+    rules = {
+        "argmax": SelectionConfig(),
+        "dalir": load_world_model(world_model_path, policy=policy).selection,
+        "random": None,
+    }
+    settings = {
+        k: v
+        for k, v in config_dict(cfg).items()
+        if k not in ("policies", "world_models", "candidates", "methods", "out")
+    }
     folder = Path(cfg.out) / "parts" / f"{index}_{policy.task}"
 
     def measure(method: str, num_candidates: int):
         def run():
-            row = evaluate_checkpoints(policy_path, world_model_path, methods=[method], num_candidates=num_candidates, **settings)[METHODS[method]]
-            return {"success_rate": row["success_rate"], "outcomes": outcome_string(row["records"]), "seconds": row["seconds"],
-                    **({"selection": row["selection"]} if "selection" in row else {})}
+            row = evaluate_checkpoints(
+                policy_path, world_model_path, methods=[method], num_candidates=num_candidates, **settings
+            )[METHODS[method]]
+            return {
+                "success_rate": row["success_rate"],
+                "outcomes": outcome_string(row["records"]),
+                "seconds": row["seconds"],
+                **({"selection": row["selection"]} if "selection" in row else {}),
+            }
+
         return run
 
-    base = measured_once(folder / "base.json", {"policy": policy_path, **{k: settings[k] for k in BASE_INPUTS}}, measure("base", 1))
+    base = measured_once(
+        folder / "base.json", {"policy": policy_path, **{k: settings[k] for k in BASE_INPUTS}}, measure("base", 1)
+    )
     rows, by_rule = {}, {}
     for method in cfg.methods:
         rule = rules[method]
         if rule is not None and replays_base_policy(rule, cfg.common_noise):
-            rows[method] = {str(n): {**base, "selection": rule.name, "seconds": 0.0, "replays": "base policy"} for n in cfg.candidates}
+            rows[method] = {
+                str(n): {**base, "selection": rule.name, "seconds": 0.0, "replays": "base policy"}
+                for n in cfg.candidates
+            }
             continue
         if rule is not None and rule.name in by_rule:
             rows[method] = by_rule[rule.name]
             continue
-        inputs = {"policy": policy_path, "world_model": world_model_path, **settings, "method": method, "rule": rule and rule.name}
-        rows[method] = {str(n): measured_once(folder / f"{method}_{n}.json", {**inputs, "num_candidates": n}, measure(method, n))
-                        for n in cfg.candidates}
+        inputs = {
+            "policy": policy_path,
+            "world_model": world_model_path,
+            **settings,
+            "method": method,
+            "rule": rule and rule.name,
+        }
+        rows[method] = {
+            str(n): measured_once(folder / f"{method}_{n}.json", {**inputs, "num_candidates": n}, measure(method, n))
+            for n in cfg.candidates
+        }
         if rule is not None:
             by_rule[rule.name] = rows[method]
-    return {"task": policy.task, "label": f"{policy.task} {Path(policy_path).parent.name}", "policy": policy_path,
-            "world_model": world_model_path, "base": base, "methods": rows}
+    return {
+        "task": policy.task,
+        "label": f"{policy.task} {Path(policy_path).parent.name}",
+        "policy": policy_path,
+        "world_model": world_model_path,
+        "base": base,
+        "methods": rows,
+    }
 
 
 def scaling_table(runs: list[dict]) -> list[dict]:
@@ -115,26 +164,38 @@ def scaling_table(runs: list[dict]) -> list[dict]:
         base = successes(run["base"]["outcomes"])
         for method, by_n in run["methods"].items():
             paired = {n: paired_sign_test(base, successes(row["outcomes"])) for n, row in by_n.items()}
-            table.append({"run": run["label"], "method": method, "candidates": [1, *map(int, by_n)],
-                          "success": [run["base"]["success_rate"], *(row["success_rate"] for row in by_n.values())],
-                          "vs_base": {n: {"base_only": t["base_only"], "method_only": t["dalir_only"], "p_value": t["p_value"]}
-                                      for n, t in paired.items()}})
+            table.append(
+                {
+                    "run": run["label"],
+                    "method": method,
+                    "candidates": [1, *map(int, by_n)],
+                    "success": [run["base"]["success_rate"], *(row["success_rate"] for row in by_n.values())],
+                    "vs_base": {
+                        n: {"base_only": t["base_only"], "method_only": t["dalir_only"], "p_value": t["p_value"]}
+                        for n, t in paired.items()
+                    },
+                }
+            )
     return table
 
 
 def markdown(table: list[dict], episodes: int) -> str:
     """Success (%) per run, method and candidate count, with the pairing against the base policy."""
     counts = table[0]["candidates"]  # every row has the configuration's counts
-    lines = ["| run | method | " + " | ".join("N = 1 (base)" if n == 1 else f"N = {n}" for n in counts) + " |",
-             "| --- | --- |" + " --- |" * len(counts)]
+    lines = [
+        "| run | method | " + " | ".join("N = 1 (base)" if n == 1 else f"N = {n}" for n in counts) + " |",
+        "| --- | --- |" + " --- |" * len(counts),
+    ]
     for row in table:
         cells = [f"{100 * row['success'][0]:.1f}"]
         for n, rate in zip(counts[1:], row["success"][1:]):
             test = row["vs_base"][str(n)]
             cells.append(f"{100 * rate:.1f} ({test['base_only']} / {test['method_only']}, p = {test['p_value']:.2f})")
         lines.append(f"| {row['run']} | {row['method']} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + (f"\n\nSuccess (%) on {episodes} test episodes per run; in brackets the episodes only the base "
-                               "policy / only the method solved, and the two-sided sign test.\n")
+    return "\n".join(lines) + (
+        f"\n\nSuccess (%) on {episodes} test episodes per run; in brackets the episodes only the base "
+        "policy / only the method solved, and the two-sided sign test.\n"
+    )
 
 
 def main(argv: list[str]) -> None:
@@ -145,10 +206,14 @@ def main(argv: list[str]) -> None:
     text = markdown(table, cfg.episodes)
     print(text)
     atomic_write(out / "candidate_scaling.md", text)
-    atomic_write(out / "candidate_scaling.json", json.dumps({"config": config_dict(cfg), "table": table, "runs": runs}, indent=1))
+    atomic_write(
+        out / "candidate_scaling.json", json.dumps({"config": config_dict(cfg), "table": table, "runs": runs}, indent=1)
+    )
     plot_candidate_scaling(table, out / "candidate_scaling.png")
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

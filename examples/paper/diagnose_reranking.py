@@ -60,20 +60,41 @@ def main(argv: list[str]) -> dict:
     torch.manual_seed(cfg.actor_seed)
     # imagined and real outcomes rated by the same (state) scorer; "chosen" is its arg-max
     reranking = RerankingConfig(num_candidates=cfg.num_candidates, dropout=cfg.dropout, selection=SelectionConfig())
-    actor = RerankingActor.from_checkpoints(cfg.policy_checkpoint, cfg.world_model, cfg.device, config=reranking, seed=cfg.actor_seed)
+    actor = RerankingActor.from_checkpoints(
+        cfg.policy_checkpoint, cfg.world_model, cfg.device, config=reranking, seed=cfg.actor_seed
+    )
     task = actor.policy.task
     records = candidate_outcomes(
-        actor, task, episodes=cfg.episodes, decisions=cfg.decisions, stride=cfg.stride, follow_through=cfg.follow_through, seed=cfg.seed
+        actor,
+        task,
+        episodes=cfg.episodes,
+        decisions=cfg.decisions,
+        stride=cfg.stride,
+        follow_through=cfg.follow_through,
+        seed=cfg.seed,
     )
     summary = summarize_candidate_outcomes(records)
     for key, value in summary.items():
-        shown = f"{value:.4g}" if isinstance(value, float) else [round(v, 3) for v in value] if isinstance(value, list) else value
+        shown = (
+            f"{value:.4g}"
+            if isinstance(value, float)
+            else [round(v, 3) for v in value]
+            if isinstance(value, list)
+            else value
+        )
         print(f"{key:40s} {shown}")
-    atomic_write(out / "candidate_outcomes.json", json.dumps({"config": config_dict(cfg), "summary": summary, "records": records}, indent=1))
-    plot_candidate_outcomes(records, out / "candidate_outcomes.png", title=f"{task}: DALI-R's candidates, imagined vs real")
+    atomic_write(
+        out / "candidate_outcomes.json",
+        json.dumps({"config": config_dict(cfg), "summary": summary, "records": records}, indent=1),
+    )
+    plot_candidate_outcomes(
+        records, out / "candidate_outcomes.png", title=f"{task}: DALI-R's candidates, imagined vs real"
+    )
     return summary
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

@@ -53,7 +53,9 @@ class Config:
         if len(set(self.runs)) != len(self.runs):
             raise ValueError(f"runs {self.runs} name a run twice: its episodes would count twice")
         if self.evaluations and len(self.evaluations) != len(self.runs):
-            raise ValueError(f"{len(self.evaluations)} evaluations for {len(self.runs)} runs: give one per run, in order")
+            raise ValueError(
+                f"{len(self.evaluations)} evaluations for {len(self.runs)} runs: give one per run, in order"
+            )
 
 
 def with_evaluation(record: dict, evaluation: dict, where: str) -> dict:
@@ -62,15 +64,24 @@ def with_evaluation(record: dict, evaluation: dict, where: str) -> dict:
     the record holds too has the record's outcomes."""
     config, run = evaluation["config"], f"{record['task']} {record['policy']} seed {record['seed']}"
     if (config["seed"], config["episodes"]) != (record["eval_seed"], record["episodes"]):
-        raise ValueError(f"{where} ran {config['episodes']} episodes of evaluation seed {config['seed']}, not the record's "
-                         f"{record['episodes']} of seed {record['eval_seed']}")
+        raise ValueError(
+            f"{where} ran {config['episodes']} episodes of evaluation seed {config['seed']}, not the record's "
+            f"{record['episodes']} of seed {record['eval_seed']}"
+        )
     checkpoint = Path(config["policy_checkpoint"])
-    if checkpoint.parent.name != f"{record['policy']}_seed{record['seed']}" or checkpoint.parent.parent.name != record["task"]:
+    if (
+        checkpoint.parent.name != f"{record['policy']}_seed{record['seed']}"
+        or checkpoint.parent.parent.name != record["task"]
+    ):
         raise ValueError(f"{where} evaluated {checkpoint}, not the policy of {run}")
     if config["actor_seed"] != record["seed"]:
-        raise ValueError(f"{where} ran at actor_seed={config['actor_seed']}; the main job's {run} ran at {record['seed']}")
-    added = {SHORT[name]: {"success_rate": row["success_rate"], "outcomes": outcome_string(row["records"])}
-             for name, row in evaluation["success"].items()}
+        raise ValueError(
+            f"{where} ran at actor_seed={config['actor_seed']}; the main job's {run} ran at {record['seed']}"
+        )
+    added = {
+        SHORT[name]: {"success_rate": row["success_rate"], "outcomes": outcome_string(row["records"])}
+        for name, row in evaluation["success"].items()
+    }
     for name, row in added.items():
         if name in record["methods"] and record["methods"][name].get("outcomes") != row["outcomes"]:
             raise ValueError(f"{where}: {name}'s outcomes are not those of the record of {run}")
@@ -99,23 +110,45 @@ def compare(cfg: Config) -> dict:
         if counts is None:
             raise ValueError(f"the record of run {run} keeps no per-episode outcomes of {cfg.method} and {cfg.against}")
         pooled = [pooled[0] + counts[0], pooled[1] + counts[1]]
-        rows.append({"run": run, "episodes": record["episodes"], "eval_seed": record["eval_seed"],
-                     cfg.against: record["methods"][cfg.against]["success_rate"], cfg.method: record["methods"][cfg.method]["success_rate"],
-                     "against_only": counts[0], "method_only": counts[1], "net": counts[1] - counts[0]})
+        rows.append(
+            {
+                "run": run,
+                "episodes": record["episodes"],
+                "eval_seed": record["eval_seed"],
+                cfg.against: record["methods"][cfg.against]["success_rate"],
+                cfg.method: record["methods"][cfg.method]["success_rate"],
+                "against_only": counts[0],
+                "method_only": counts[1],
+                "net": counts[1] - counts[0],
+            }
+        )
     test = sign_test(*pooled)
-    return {"method": cfg.method, "against": cfg.against, "variant": cfg.variant, "runs": rows,
-            "pooled": {"against_only": pooled[0], "method_only": pooled[1], "p_two_sided": test["p_value"]},
-            "largest_net_loss": max(0, -min(row["net"] for row in rows))}
+    return {
+        "method": cfg.method,
+        "against": cfg.against,
+        "variant": cfg.variant,
+        "runs": rows,
+        "pooled": {"against_only": pooled[0], "method_only": pooled[1], "p_two_sided": test["p_value"]},
+        "largest_net_loss": max(0, -min(row["net"] for row in rows)),
+    }
 
 
 def markdown(result: dict) -> str:
     method, against = result["method"], result["against"]
-    lines = [f"| run | episodes | {against} (%) | {method} (%) | only {against} / only {method} |", "| --- | --- | --- | --- | --- |"]
+    lines = [
+        f"| run | episodes | {against} (%) | {method} (%) | only {against} / only {method} |",
+        "| --- | --- | --- | --- | --- |",
+    ]
     for row in result["runs"]:
-        lines.append(f"| {row['run']} | {row['episodes']} | {100 * row[against]:.0f} | {100 * row[method]:.0f} | "
-                     f"{row['against_only']} / {row['method_only']} |")
+        lines.append(
+            f"| {row['run']} | {row['episodes']} | {100 * row[against]:.0f} | {100 * row[method]:.0f} | "
+            f"{row['against_only']} / {row['method_only']} |"
+        )
     pooled = result["pooled"]
-    lines.append(f"| pooled | | | | {pooled['against_only']} / {pooled['method_only']} (two-sided p = {pooled['p_two_sided']:.3f}) |")
+    lines.append(
+        f"| pooled | | | | {pooled['against_only']} / {pooled['method_only']} "
+        f"(two-sided p = {pooled['p_two_sided']:.3f}) |"
+    )
     return "\n".join(lines) + f"\n\nLargest net loss of one run: {result['largest_net_loss']} episodes."
 
 

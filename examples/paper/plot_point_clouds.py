@@ -21,7 +21,9 @@ from torchrl_dalir.experts import make_expert
 
 @dataclass
 class Config:
-    tasks: list[str] = field(default_factory=lambda: ["door", "pen", "disassemble", "shelf-place", "stick-pull", "pick-place-wall"])
+    tasks: list[str] = field(
+        default_factory=lambda: ["door", "pen", "disassemble", "shelf-place", "stick-pull", "pick-place-wall"]
+    )
     steps: int = 30
     seed: int = 0
     out: str = "docs/point_clouds"
@@ -35,7 +37,9 @@ def main(argv: list[str]) -> None:
         policy = None if spec.suite == ADROIT else make_expert(task)
         steps = 1 if spec.suite == ADROIT else cfg.steps
         td = env.rollout(steps, policy, break_when_any_done=False)[-1]["next"] if policy else env.reset()
-        path = plot_point_cloud(td[keys.POINT_CLOUD], f"{cfg.out}/{task}.png", title=task, crop_low=spec.crop_low, crop_high=spec.crop_high)
+        path = plot_point_cloud(
+            td[keys.POINT_CLOUD], f"{cfg.out}/{task}.png", title=task, crop_low=spec.crop_low, crop_high=spec.crop_high
+        )
         print(f"{task}: {path}")
         env.close()
 

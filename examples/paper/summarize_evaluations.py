@@ -38,7 +38,10 @@ def gather(root: Path) -> dict:
             continue
         settings = {(r["config"]["seed"], r["config"]["episodes"]) for r in runs.values()}
         if len(settings) > 1:
-            raise ValueError(f"{task_dir}: runs on different episodes {sorted(settings)}; compare runs of one evaluation seed and size")
+            raise ValueError(
+                f"{task_dir}: runs on different episodes {sorted(settings)}; "
+                "compare runs of one evaluation seed and size"
+            )
         base = next((r["success"][BASE] for r in runs.values() if BASE in r["success"]), None)
         if base is None:
             raise ValueError(f"{task_dir}: no run evaluated the base policy ({BASE!r}), so nothing to pair against")
@@ -49,7 +52,11 @@ def gather(root: Path) -> dict:
                 if method == BASE:
                     continue
                 test = paired_sign_test(base_successes, [e["success"] for e in row["records"]])
-                methods[f"{run_name}/{method}"] = {"selection": row.get("selection", ""), "success_rate": row["success_rate"], **test}
+                methods[f"{run_name}/{method}"] = {
+                    "selection": row.get("selection", ""),
+                    "success_rate": row["success_rate"],
+                    **test,
+                }
         seed, episodes = settings.pop()
         tasks[task_dir.name] = {"seed": seed, "episodes": episodes, "base": base["success_rate"], "methods": methods}
     return tasks
@@ -58,16 +65,29 @@ def gather(root: Path) -> dict:
 def main(argv: list[str]) -> None:
     cfg = parse_config(Config, argv)
     tasks = gather(Path(cfg.root))
-    lines = ["| task | run / method | rule | success | only base / only this | p |", "| --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "| task | run / method | rule | success | only base / only this | p |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
     for task, entry in tasks.items():
-        lines.append(f"| {task} (seed {entry['seed']}, {entry['episodes']} episodes) | base policy | | {entry['base']:.1%} | | |")
+        lines.append(
+            f"| {task} (seed {entry['seed']}, {entry['episodes']} episodes) | base policy | | {entry['base']:.1%} | | |"
+        )
         for name, row in entry["methods"].items():
-            lines.append(f"| | {name} | {row['selection']} | {row['success_rate']:.1%} | {row['base_only']} / {row['dalir_only']} | {row['p_value']:.2f} |")
+            lines.append(
+                f"| | {name} | {row['selection']} | {row['success_rate']:.1%} "
+                f"| {row['base_only']} / {row['dalir_only']} | {row['p_value']:.2f} |"
+            )
     table = "\n".join(lines)
     print(table)
     out = Path(cfg.out)
     command = " ".join(["python examples/paper/summarize_evaluations.py", *argv])
-    atomic_write(out, json.dumps({"command": command, "runs": {t: sorted(e["methods"]) for t, e in tasks.items()}, "tasks": tasks}, indent=1))
+    atomic_write(
+        out,
+        json.dumps(
+            {"command": command, "runs": {t: sorted(e["methods"]) for t, e in tasks.items()}, "tasks": tasks}, indent=1
+        ),
+    )
     atomic_write(out.with_suffix(".md"), table + "\n")
 
 

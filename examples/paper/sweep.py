@@ -54,15 +54,34 @@ class Config:
 
 
 def run_arguments(cfg: Config, task: str, seed: int) -> list[str]:
-    return [f"task={task}", f"seed={seed}", f"policy={cfg.policy}", f"preset={cfg.preset}", f"out={cfg.out}", *cfg.overrides]
+    return [
+        f"task={task}",
+        f"seed={seed}",
+        f"policy={cfg.policy}",
+        f"preset={cfg.preset}",
+        f"out={cfg.out}",
+        *cfg.overrides,
+    ]
 
 
 def run_one(cfg: Config, task: str, seed: int) -> dict:
     name = f"{task}_{cfg.policy}_seed{seed}"
     log = Path(cfg.out) / "logs" / f"{name}.log"
-    code, seconds = run_logged([sys.executable, str(EXAMPLES / "train_dp3_wm.py"), *run_arguments(cfg, task, seed)], log, cfg.threads)
-    print(f"[sweep] {name}: {'ok' if code == 0 else f'FAILED (exit {code}), see {log}'} in {seconds / 60:.1f} min", flush=True)
-    return {"task": task, "seed": seed, "policy": cfg.policy, "exit_code": code, "seconds": round(seconds, 1), "log": str(log)}
+    code, seconds = run_logged(
+        [sys.executable, str(EXAMPLES / "train_dp3_wm.py"), *run_arguments(cfg, task, seed)], log, cfg.threads
+    )
+    print(
+        f"[sweep] {name}: {'ok' if code == 0 else f'FAILED (exit {code}), see {log}'} in {seconds / 60:.1f} min",
+        flush=True,
+    )
+    return {
+        "task": task,
+        "seed": seed,
+        "policy": cfg.policy,
+        "exit_code": code,
+        "seconds": round(seconds, 1),
+        "log": str(log),
+    }
 
 
 def launch(cfg: Config, runs: list[tuple[str, int]]) -> list[dict]:
@@ -70,7 +89,11 @@ def launch(cfg: Config, runs: list[tuple[str, int]]) -> list[dict]:
     if cfg.launcher == "local":
         with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
             return list(pool.map(lambda run: run_one(cfg, *run), runs))
-    init_config = {"address": cfg.ray_address} if cfg.ray_address else {"num_cpus": cfg.jobs * cfg.threads, "include_dashboard": False}
+    init_config = (
+        {"address": cfg.ray_address}
+        if cfg.ray_address
+        else {"num_cpus": cfg.jobs * cfg.threads, "include_dashboard": False}
+    )
     with ray_runtime("launcher=ray", init_config) as ray:
         remote = ray.remote(num_cpus=cfg.threads)(run_one)
         return ray.get([remote.remote(cfg, *run) for run in runs])
@@ -83,7 +106,9 @@ def main(argv: list[str]) -> None:
         parse_config(PipelineConfig, run_arguments(cfg, *run), PRESETS)
     records = launch(cfg, runs)
     atomic_write(Path(cfg.out) / "sweep.json", json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))
-    variant = config_variant(parse_config(PipelineConfig, run_arguments(cfg, *runs[0]), PRESETS))  # the summary's tables are of the runs' variant
+    variant = config_variant(
+        parse_config(PipelineConfig, run_arguments(cfg, *runs[0]), PRESETS)
+    )  # the summary's tables are of the runs' variant
     summarize = Path(__file__).resolve().parent / "summarize_results.py"
     subprocess.run([sys.executable, str(summarize), f"out={cfg.out}", f"variant={variant}"], check=True)
     failed = [r for r in records if r["exit_code"] != 0]
@@ -92,5 +117,7 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

@@ -47,7 +47,9 @@ class Config:
     part: str = "a"  # a (scorer supervision) | b (mixed-data scale)
     tasks: list[str] = field(default_factory=list)  # empty: the paper's (a: pen and disassemble; b: disassemble)
     seeds: list[int] = field(default_factory=lambda: [0])
-    mixed_sizes: list[int] = field(default_factory=lambda: [100, 200, 0])  # (b) training trajectories per world model; 0: all
+    mixed_sizes: list[int] = field(
+        default_factory=lambda: [100, 200, 0]
+    )  # (b) training trajectories per world model; 0: all
     policy: str = "fm"
     preset: str = "cpu"
     out: str = "outputs/pipeline"  # the main job's output folder, shared by every run
@@ -73,8 +75,16 @@ def variants(cfg: Config) -> dict[str, list[str]]:
 
 def run_arguments(cfg: Config, task: str, seed: int, variant: str) -> list[str]:
     own = variants(cfg)[variant]
-    return [f"task={task}", f"seed={seed}", f"policy={cfg.policy}", f"preset={cfg.preset}", f"out={cfg.out}", *cfg.overrides,
-            *own, *(VARIANT_RUN if variant else [])]
+    return [
+        f"task={task}",
+        f"seed={seed}",
+        f"policy={cfg.policy}",
+        f"preset={cfg.preset}",
+        f"out={cfg.out}",
+        *cfg.overrides,
+        *own,
+        *(VARIANT_RUN if variant else []),
+    ]
 
 
 def run(cfg: Config, task: str, seed: int, variant: str) -> dict:
@@ -83,20 +93,40 @@ def run(cfg: Config, task: str, seed: int, variant: str) -> dict:
     pipeline = parse_config(PipelineConfig, arguments, PRESETS)
     log = Path(cfg.out) / "logs" / f"table3_{task}_{pipeline.run_name()}.log"
     code, seconds = run_logged([sys.executable, str(EXAMPLES / "train_dp3_wm.py"), *arguments], log, cfg.threads)
-    print(f"[table3] {task} {pipeline.run_name()}: {'ok' if code == 0 else f'FAILED (exit {code}), see {log}'} in {seconds / 60:.1f} min", flush=True)
+    print(
+        f"[table3] {task} {pipeline.run_name()}: "
+        f"{'ok' if code == 0 else f'FAILED (exit {code}), see {log}'} in {seconds / 60:.1f} min",
+        flush=True,
+    )
     if code != 0:
         raise RuntimeError(f"the run {arguments} failed: see {log}")
     results = json.loads((pipeline.results_dir() / "results.json").read_text())
-    return {"task": task, "seed": seed, "variant": variant, "command": ["python examples/train_dp3_wm.py", *arguments],
-            "success": {name: r["success_rate"] for name, r in results["success"].items()},
-            "episodes": results["success"][ARGMAX]["episodes"], "metrics": results["world_model_metrics"]}
+    return {
+        "task": task,
+        "seed": seed,
+        "variant": variant,
+        "command": ["python examples/train_dp3_wm.py", *arguments],
+        "success": {name: r["success_rate"] for name, r in results["success"].items()},
+        "episodes": results["success"][ARGMAX]["episodes"],
+        "metrics": results["world_model_metrics"],
+    }
 
 
 def table_a(runs: list[dict], tasks: list[str]) -> list[dict]:
     """Per task the per-seed success of the base policy and of DALI-R with each scorer's supervision."""
+
     def rates(task, variant, method):
         return [r["success"][method] for r in runs if r["task"] == task and r["variant"] == variant]
-    return [{"task": t, "base": rates(t, "", BASE), "sparse": rates(t, "", ARGMAX), "dense": rates(t, "dense_reward", ARGMAX)} for t in tasks]
+
+    return [
+        {
+            "task": t,
+            "base": rates(t, "", BASE),
+            "sparse": rates(t, "", ARGMAX),
+            "dense": rates(t, "dense_reward", ARGMAX),
+        }
+        for t in tasks
+    ]
 
 
 def table_b(runs: list[dict], cfg: Config) -> list[dict]:
@@ -107,27 +137,50 @@ def table_b(runs: list[dict], cfg: Config) -> list[dict]:
         base = [r["success"][BASE] for r in runs if r["task"] == task and r["variant"] == "" and BASE in r["success"]]
         for n in cfg.mixed_sizes:
             chosen = [r for r in runs if r["task"] == task and r["variant"] == (f"mixed{n}" if n else "")]
-            rows.append({"task": task, "mixed_trajectories": n or "all", "wm_mse": [r["metrics"]["wm_mse"] for r in chosen],
-                         "no_change_mse": [r["metrics"]["no_change_mse"] for r in chosen], "base": base,
-                         "success": [r["success"][ARGMAX] for r in chosen]})
+            rows.append(
+                {
+                    "task": task,
+                    "mixed_trajectories": n or "all",
+                    "wm_mse": [r["metrics"]["wm_mse"] for r in chosen],
+                    "no_change_mse": [r["metrics"]["no_change_mse"] for r in chosen],
+                    "base": base,
+                    "success": [r["success"][ARGMAX] for r in chosen],
+                }
+            )
     return rows
 
 
 def markdown(cfg: Config, table: list[dict], episodes: int) -> str:
-    footer = f"\n\nMean over seeds {cfg.seeds}, {episodes} test episodes per seed; DALI-R selects by the paper's arg-max.\n"
+    footer = (
+        f"\n\nMean over seeds {cfg.seeds}, {episodes} test episodes per seed; DALI-R selects by the paper's arg-max.\n"
+    )
     if cfg.part == "a":
-        labels = {"base": "no scorer (base policy)", "sparse": "sparse terminal labels", "dense": "dense simulator reward (oracle)"}
-        lines = ["| supervision | " + " | ".join(row["task"] for row in table) + " | avg. |", "| --- |" + " --- |" * (len(table) + 1)]
+        labels = {
+            "base": "no scorer (base policy)",
+            "sparse": "sparse terminal labels",
+            "dense": "dense simulator reward (oracle)",
+        }
+        lines = [
+            "| supervision | " + " | ".join(row["task"] for row in table) + " | avg. |",
+            "| --- |" + " --- |" * (len(table) + 1),
+        ]
         for key, label in labels.items():
             cells = [100 * mean(row[key]) for row in table]
             lines.append(f"| {label} | " + " | ".join(f"{c:.1f}" for c in cells) + f" | {mean(cells):.1f} |")
         return "\n".join(lines) + footer
-    lines = ["| task | mixed trajectories | held-out latent MSE | no-change MSE | base policy (%) | DALI-R (%) |",
-             "| --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "| task | mixed trajectories | held-out latent MSE | no-change MSE | base policy (%) | DALI-R (%) |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
     for row in table:
-        base = f"{100 * mean(row['base']):.1f}" if row["base"] else "-"  # (a main run evaluated without the base policy)
-        lines.append(f"| {row['task']} | {row['mixed_trajectories']} | {mean(row['wm_mse']):.5f} | {mean(row['no_change_mse']):.5f} | "
-                     f"{base} | {100 * mean(row['success']):.1f} |")
+        base = (
+            f"{100 * mean(row['base']):.1f}" if row["base"] else "-"
+        )  # (a main run evaluated without the base policy)
+        lines.append(
+            f"| {row['task']} | {row['mixed_trajectories']} | {mean(row['wm_mse']):.5f} "
+            f"| {mean(row['no_change_mse']):.5f} | "
+            f"{base} | {100 * mean(row['success']):.1f} |"
+        )
     return "\n".join(lines) + footer
 
 
@@ -146,14 +199,23 @@ def main(argv: list[str]) -> None:
     out = Path(cfg.table_out)
     name = f"table3{cfg.part}"
     atomic_write(out / f"{name}.md", text)
-    atomic_write(out / f"{name}.json", json.dumps({"config": config_dict(cfg), "part": PARTS[cfg.part], "table": table, "runs": runs}, indent=1))
+    atomic_write(
+        out / f"{name}.json",
+        json.dumps({"config": config_dict(cfg), "part": PARTS[cfg.part], "table": table, "runs": runs}, indent=1),
+    )
     if cfg.part == "a":
-        plot_success_by_task(table, out / f"{name}.png", title="Scorer supervision",
-                             methods=(("base", "no scorer"), ("sparse", "sparse labels"), ("dense", "dense reward (oracle)")))
+        plot_success_by_task(
+            table,
+            out / f"{name}.png",
+            title="Scorer supervision",
+            methods=(("base", "no scorer"), ("sparse", "sparse labels"), ("dense", "dense reward (oracle)")),
+        )
     else:
         plot_data_scale(table, out / f"{name}.png")
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

@@ -88,7 +88,8 @@ class Config:
 PRESETS: dict[str, dict] = {
     # The library's world-model settings (LatentDynamicsConfig's defaults).
     "paper": {},
-    # About 7 minutes for the 3 made tasks on a 2-core CPU: smaller clouds, a short encoder stage, a smaller world model.
+    # About 7 minutes for the 3 made tasks on a 2-core CPU: smaller clouds, a short encoder stage,
+    # a smaller world model.
     "cpu": {
         "num_points": 256,
         "made_episodes": 30,
@@ -232,5 +233,7 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    reuse_freed_memory(__file__)  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
+    reuse_freed_memory(
+        __file__
+    )  # before any large tensor: re-executes under glibc malloc tunables (DALIR_MALLOC=system: not)
     main(sys.argv[1:])

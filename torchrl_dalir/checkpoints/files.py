@@ -40,7 +40,8 @@ def safe_torch_load(path: str | Path, what: str = "torch file"):
         refused = re.search(r"GLOBAL (\S+)", str(cause))
         if refused:
             raise UnsafeFileError(
-                f"refused to load {path}: it holds a pickled {refused[1].rstrip('.')}, not only tensors and plain values, "
+                f"refused to load {path}: it holds a pickled {refused[1].rstrip('.')}, "
+                "not only tensors and plain values, "
                 "and loading it could run code. Checkpoints of this library hold none: if this one was written by an "
                 "older version, retrain it; otherwise do not trust the file"
             ) from None

@@ -126,7 +126,9 @@ def save_world_model(
             "policy_checkpoint": str(policy_checkpoint),
             "policy_digest": weights_digest(policy),  # which policy's weights it was trained on (see check_trained_on)
             "encoder_mode": encoder_mode,
-            "policy_config": asdict(policy.config) if isinstance(getattr(policy, "config", None), PolicyConfig) else None,
+            "policy_config": asdict(policy.config)
+            if isinstance(getattr(policy, "config", None), PolicyConfig)
+            else None,
             "encoder_args": encoder.architecture(),  # rebuilds the encoder without the policy's configuration
             "action_dim": policy.action_dim,
             "state_dim": encoder.architecture()["state_dim"],
@@ -164,9 +166,10 @@ def check_trained_on(state: dict, policy: ChunkPolicy, path: str | Path) -> None
     actual = weights_digest(policy)
     if actual != recorded:
         raise ValueError(
-            f"the world model at {path} was trained on top of the policy at {state['policy_checkpoint']}, not on the policy "
-            f"{source}, whose weights differ (digest {actual[:12]} instead of {recorded[:12]}): pass the policy "
-            "it was trained on, or train a world model on this one (examples/train_world_model.py policy_checkpoint=...)"
+            f"the world model at {path} was trained on top of the policy at {state['policy_checkpoint']}, "
+            f"not on the policy {source}, whose weights differ (digest {actual[:12]} instead of {recorded[:12]}): "
+            "pass the policy it was trained on, or train a world model on this one "
+            "(examples/train_world_model.py policy_checkpoint=...)"
         )
 
 
@@ -181,8 +184,12 @@ def load_world_model(path: str | Path, device="cpu", policy: ChunkPolicy | None 
     state = load_checkpoint(path, "world_model", WORLD_MODEL_ENTRIES)
     if policy is not None:
         check_trained_on(state, policy, path)
-    if state["policy_config"] is not None:  # the policy's architecture (as loading always built it: the same draws from torch's generator)
-        encoder = LatentEncoder.from_policy(make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"]))
+    if (
+        state["policy_config"] is not None
+    ):  # the policy's architecture (as loading always built it: the same draws from torch's generator)
+        encoder = LatentEncoder.from_policy(
+            make_policy(PolicyConfig(**state["policy_config"]), state["action_dim"], state["state_dim"])
+        )
     else:  # a policy of another design (a ChunkPolicy): the encoder's own architecture
         check_entries(state, path, ("encoder_args",), "world_model checkpoint")
         encoder = LatentEncoder.fresh(**state["encoder_args"])

@@ -70,12 +70,15 @@ class BranchedMeta:
         return {k: v for k, v in asdict(self).items() if k not in ("done_episodes", "complete")}
 
 
-def _episode_rows(env, policy, generator, name: str, reset_seed: int, num_candidates: int, stride: int, device) -> TensorDict:
+def _episode_rows(
+    env, policy, generator, name: str, reset_seed: int, num_candidates: int, stride: int, device
+) -> TensorDict:
     """Every ``stride``-th decision of the base policy's episode reset with ``reset_seed``, branched."""
     observation, _ = env.reset(seed=reset_seed)
     decisions: list[tuple] = []
-    base_success, base_steps = continue_base(env, policy, [observation], reset_seed, 0, device,
-                                             visit=lambda _, obs: decisions.append((env.get_state(), obs)))
+    base_success, base_steps = continue_base(
+        env, policy, [observation], reset_seed, 0, device, visit=lambda _, obs: decisions.append((env.get_state(), obs))
+    )
     action_steps, rows = policy.action_steps, []
     for j, (state, observations) in enumerate(decisions):
         if j % stride:
@@ -83,25 +86,45 @@ def _episode_rows(env, policy, generator, name: str, reset_seed: int, num_candid
         chunks = candidate_chunks(policy, generator, observations, num_candidates, reset_seed, j, name, device)
         actions = executed_actions(policy, chunks)
         outcomes = [(base_success, base_steps - j * action_steps)]  # the clean branch is the base episode from here
-        outcomes += [branch(env, policy, state, observations, actions[k], reset_seed, j, device) for k in range(1, num_candidates)]
+        outcomes += [
+            branch(env, policy, state, observations, actions[k], reset_seed, j, device)
+            for k in range(1, num_candidates)
+        ]
         history = latest_history(observations, policy.obs_steps)
-        rows.append(TensorDict({
-            keys.POINT_CLOUD: torch.as_tensor(np.stack([o[keys.POINT_CLOUD] for o in history])),
-            keys.AGENT_POS: torch.as_tensor(np.stack([o[keys.AGENT_POS] for o in history])),
-            keys.ACTION_CHUNK: chunks.cpu(),
-            SUCCESS: torch.tensor([won for won, _ in outcomes]),
-            STEPS_TO_SUCCESS: torch.tensor([steps if won else -1 for won, steps in outcomes]),
-            RESET_SEED: torch.tensor(reset_seed), DECISION: torch.tensor(j),
-        }, []))
+        rows.append(
+            TensorDict(
+                {
+                    keys.POINT_CLOUD: torch.as_tensor(np.stack([o[keys.POINT_CLOUD] for o in history])),
+                    keys.AGENT_POS: torch.as_tensor(np.stack([o[keys.AGENT_POS] for o in history])),
+                    keys.ACTION_CHUNK: chunks.cpu(),
+                    SUCCESS: torch.tensor([won for won, _ in outcomes]),
+                    STEPS_TO_SUCCESS: torch.tensor([steps if won else -1 for won, steps in outcomes]),
+                    RESET_SEED: torch.tensor(reset_seed),
+                    DECISION: torch.tensor(j),
+                },
+                [],
+            )
+        )
     return torch.stack(rows)
 
 
-def collect_branched(policy, root: str | Path, reranking: RerankingConfig | None = None, *, task: str | TaskSpec | None = None,
-                     episodes: int = 20, stride: int = 2, seed: int = 0, progress: bool = True, device="cpu") -> BranchedOutcomes:
+def collect_branched(
+    policy,
+    root: str | Path,
+    reranking: RerankingConfig | None = None,
+    *,
+    task: str | TaskSpec | None = None,
+    episodes: int = 20,
+    stride: int = 2,
+    seed: int = 0,
+    progress: bool = True,
+    device="cpu",
+) -> BranchedOutcomes:
     """Branches the candidates that ``reranking`` makes (its generator and ``num_candidates``; by
-    default 8 point-dropout candidates) at every ``stride``-th decision of ``episodes`` base-policy episodes on data seeds
-    ``seed, seed + 1, ...`` of ``task`` (by default the policy's), and stores them under ``root`` (see the module docstring). Resumes an
-    unfinished collection with the same plan; refuses a folder that holds another plan."""
+    default 8 point-dropout candidates) at every ``stride``-th decision of ``episodes`` base-policy episodes on
+    data seeds ``seed, seed + 1, ...`` of ``task`` (by default the policy's), and stores them under ``root`` (see
+    the module docstring). Resumes an unfinished collection with the same plan; refuses a folder that holds
+    another plan."""
     root = Path(root)
     reranking = reranking if reranking is not None else RerankingConfig(num_candidates=8)
     num_candidates, name = reranking.num_candidates, reranking.candidates
@@ -117,19 +140,27 @@ def collect_branched(policy, root: str | Path, reranking: RerankingConfig | None
     if (root / "meta.json").exists():
         stored = BranchedMeta(**_read_json(root / "meta.json"))
         if stored.plan() != meta.plan():
-            raise ValueError(f"{root} holds branched outcomes of another plan ({stored.plan()}), not {meta.plan()}: "
-                             "choose another folder or delete it")
+            raise ValueError(
+                f"{root} holds branched outcomes of another plan ({stored.plan()}), not {meta.plan()}: "
+                "choose another folder or delete it"
+            )
         if stored.complete:
             return BranchedOutcomes.load(root)
         meta.done_episodes = stored.done_episodes
     root.mkdir(parents=True, exist_ok=True)
     atomic_write(root / "meta.json", json.dumps(asdict(meta), indent=1))
-    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps,
-                                history=policy.obs_steps)
+    env = PointCloudObservation(
+        make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps, history=policy.obs_steps
+    )
     try:
-        for episode in tqdm([e for e in range(episodes) if e not in meta.done_episodes], desc=f"branch {spec.name}",
-                            disable=not progress):
-            rows = _episode_rows(env, policy, generator, name, seed + episode, num_candidates, stride, torch.device(device))
+        for episode in tqdm(
+            [e for e in range(episodes) if e not in meta.done_episodes],
+            desc=f"branch {spec.name}",
+            disable=not progress,
+        ):
+            rows = _episode_rows(
+                env, policy, generator, name, seed + episode, num_candidates, stride, torch.device(device)
+            )
             _memmap_atomically(rows, root / "episodes" / f"{episode:05d}")
             meta.done_episodes = sorted([*meta.done_episodes, episode])
             atomic_write(root / "meta.json", json.dumps(asdict(meta), indent=1))
@@ -153,11 +184,15 @@ class BranchedOutcomes:
     def load(cls, root: str | Path) -> BranchedOutcomes:
         root = Path(root)
         if not (root / "meta.json").exists():
-            raise FileNotFoundError(f"no branched outcomes at {root} (no meta.json): collect them with collect_branched")
+            raise FileNotFoundError(
+                f"no branched outcomes at {root} (no meta.json): collect them with collect_branched"
+            )
         meta = BranchedMeta(**_read_json(root / "meta.json"))
         if not meta.complete:
-            raise ValueError(f"the branched outcomes at {root} are unfinished ({len(meta.done_episodes)} of {meta.episodes} "
-                             "episodes): run collect_branched again to resume")
+            raise ValueError(
+                f"the branched outcomes at {root} are unfinished ({len(meta.done_episodes)} of {meta.episodes} "
+                "episodes): run collect_branched again to resume"
+            )
         return cls(root, meta, TensorDict.load_memmap(root / "rows"))
 
     def split_decisions(self) -> torch.Tensor:
@@ -173,5 +208,8 @@ class BranchedOutcomes:
         return len(self.rows)
 
     def __repr__(self) -> str:
-        return (f"BranchedOutcomes(task={self.meta.task!r}, decisions={len(self)}, split={int(self.split_decisions().sum())}, "
-                f"candidates={self.meta.num_candidates}, generator={self.meta.candidates!r}, root={str(self.root)!r})")
+        return (
+            f"BranchedOutcomes(task={self.meta.task!r}, decisions={len(self)}, "
+            f"split={int(self.split_decisions().sum())}, "
+            f"candidates={self.meta.num_candidates}, generator={self.meta.candidates!r}, root={str(self.root)!r})"
+        )

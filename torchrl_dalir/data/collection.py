@@ -84,7 +84,12 @@ class Source:
     history: int = 1
 
     def describe(self) -> dict:
-        return {"name": self.name, "num_trajectories": self.num_trajectories, "noise_scale": self.noise_scale, "expert": self.expert}
+        return {
+            "name": self.name,
+            "num_trajectories": self.num_trajectories,
+            "noise_scale": self.noise_scale,
+            "expert": self.expert,
+        }
 
 
 def _worker_env(task: TaskSpec, first_seed: int, stride: int, num_points: int, history: int):
@@ -168,12 +173,20 @@ def _make_collector(backend: str, env_fns: list[Callable], policy_fn: Callable, 
         from torchrl.collectors.distributed import RayCollector
 
         return RayCollector(
-            env_fns, policy_factory=[policy_fn] * workers, frames_per_batch=frames, total_frames=sys.maxsize,  # -1 stops it at once
-            collector_class=Collector, sync=True, num_collectors=workers, ray_init_config=ray_init_config,
+            env_fns,
+            policy_factory=[policy_fn] * workers,
+            frames_per_batch=frames,
+            total_frames=sys.maxsize,  # -1 stops it at once
+            collector_class=Collector,
+            sync=True,
+            num_collectors=workers,
+            ray_init_config=ray_init_config,
             remote_configs=RAY_ACTOR_RESOURCES,
         )
     if workers > 1:  # env and policy step in each worker process; this process only gathers
-        return MultiSyncCollector(env_fns, policy_factory=[policy_fn] * workers, frames_per_batch=frames, total_frames=-1, cat_results="stack")
+        return MultiSyncCollector(
+            env_fns, policy_factory=[policy_fn] * workers, frames_per_batch=frames, total_frames=-1, cat_results="stack"
+        )
     return Collector(env_fns[0](), policy_fn(), frames_per_batch=frames, total_frames=-1)
 
 
@@ -233,7 +246,9 @@ def collect(
         raise ValueError("give at least one source, each with a non-negative number of trajectories")
     check_data_seed(seed * SEEDS_PER_DATASET)
     root = Path(root)
-    meta = DatasetMeta(task=spec.name, num_points=num_points, gamma=gamma, seed=seed, sources=[s.describe() for s in sources])
+    meta = DatasetMeta(
+        task=spec.name, num_points=num_points, gamma=gamma, seed=seed, sources=[s.describe() for s in sources]
+    )
     writer = DatasetWriter(root, meta)
     if writer.meta.complete:
         return TrajectoryDataset.load(root)
@@ -247,14 +262,27 @@ def collect(
     todo = [c for c in chunks if c[0] not in writer.done_chunks()]
 
     total = sum(s.num_trajectories for s in sources)
-    cfg = dict(num_workers=num_workers, num_points=num_points, noise_correlation=noise_correlation, gamma=gamma,
-               successes_only=successes_only, backend=backend, ray_init_config=ray_init_config)
+    cfg = dict(
+        num_workers=num_workers,
+        num_points=num_points,
+        noise_correlation=noise_correlation,
+        gamma=gamma,
+        successes_only=successes_only,
+        backend=backend,
+        ray_init_config=ray_init_config,
+    )
     # one Ray runtime for every chunk (each chunk's collector would start and stop its own)
     runtime = ray_runtime('backend="ray"', ray_init_config) if backend == "ray" and todo else nullcontext()
     with runtime as ray:
         if ray is not None:
             _check_ray_cpus(ray, num_workers)
-        with tqdm(total=total, initial=writer.meta.num_trajectories, desc=f"collect {spec.name}", unit="traj", disable=not progress) as bar:
+        with tqdm(
+            total=total,
+            initial=writer.meta.num_trajectories,
+            desc=f"collect {spec.name}",
+            unit="traj",
+            disable=not progress,
+        ) as bar:
             for chunk, source_index, count in todo:
                 chunk_seed = check_data_seed(seed * SEEDS_PER_DATASET + chunk * SEEDS_PER_CHUNK)
                 cfg["max_failures"] = max_failures if max_failures is not None else 10 * count
@@ -269,7 +297,9 @@ def _collect_chunk(spec, source, source_index, count, chunk_seed, cfg, bar):
     whenever, wherever and by however many workers it is collected."""
     workers = cfg["num_workers"]
     low, high = action_bounds(spec)
-    env_fns = [partial(_worker_env, spec, chunk_seed + w, workers, cfg["num_points"], source.history) for w in range(workers)]
+    env_fns = [
+        partial(_worker_env, spec, chunk_seed + w, workers, cfg["num_points"], source.history) for w in range(workers)
+    ]
     policy_fn = partial(_source_policy, spec, source, cfg["noise_correlation"])
     threads = torch.get_num_threads()  # TorchRL's multi-process collector changes it; the caller's choice stands
     kept, reset_seeds, failures, steps, attempt = [], [], 0, 0, 0
@@ -289,13 +319,19 @@ def _collect_chunk(spec, source, source_index, count, chunk_seed, cfg, bar):
                     trajectory[keys.ACTION] = trajectory[keys.ACTION].clamp(low, high)  # what the simulator executed
                     steps += len(trajectory)
                     rows = trajectory_rows(
-                        trajectory, trajectory_id=len(kept), source=source_index, noise_scale=source.noise_scale,
-                        expert_source=source.expert and source.noise_scale == 0, gamma=cfg["gamma"],
+                        trajectory,
+                        trajectory_id=len(kept),
+                        source=source_index,
+                        noise_scale=source.noise_scale,
+                        expert_source=source.expert and source.noise_scale == 0,
+                        gamma=cfg["gamma"],
                     )
                     if cfg["successes_only"] and rows[keys.TERMINAL_LABEL][0] < 1:
                         failures += 1
                         if failures > cfg["max_failures"]:
-                            raise RuntimeError(f"{failures} failed attempts while collecting {count} successes from {source.name!r}")
+                            raise RuntimeError(
+                                f"{failures} failed attempts while collecting {count} successes from {source.name!r}"
+                            )
                         continue
                     kept.append(rows)
                     reset_seeds.append(episode_seed)
@@ -303,7 +339,10 @@ def _collect_chunk(spec, source, source_index, count, chunk_seed, cfg, bar):
                 if len(kept) == count:
                     break
                 if attempt >= SEEDS_PER_CHUNK:
-                    raise RuntimeError(f"{count} trajectories from {source.name!r} took more than {SEEDS_PER_CHUNK} attempts in one chunk: lower chunk_size")
+                    raise RuntimeError(
+                        f"{count} trajectories from {source.name!r} took more than {SEEDS_PER_CHUNK} attempts "
+                        "in one chunk: lower chunk_size"
+                    )
     finally:
         if collector is not None:
             collector.shutdown()

@@ -33,7 +33,9 @@ class CollectionConfig:
     num_points: int = 512
     num_workers: int = 2  # collector workers; the data do not depend on it
     backend: str = "local"  # local (worker processes here) | ray (Ray actors; pip install "torchrl_dalir[ray]")
-    ray_address: str = ""  # with backend=ray: the cluster to join ("auto": the one started on this machine); "" starts a local one
+    ray_address: str = (
+        ""  # with backend=ray: the cluster to join ("auto": the one started on this machine); "" starts a local one
+    )
     chunk_size: int = 100
     progress: bool = True
 
@@ -41,7 +43,14 @@ class CollectionConfig:
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("stage", self.stage, ("demos", "mixed", "all"))
         check_choice("backend", self.backend, BACKENDS)
-        for name, minimum in (("chunk_size", 1), ("num_points", 1), ("num_workers", 1), ("num_demos", 1), ("num_mixed", 0), ("seed", 0)):
+        for name, minimum in (
+            ("chunk_size", 1),
+            ("num_points", 1),
+            ("num_workers", 1),
+            ("num_demos", 1),
+            ("num_mixed", 0),
+            ("seed", 0),
+        ):
             check_at_least(name, getattr(self, name), minimum)
         check_at_least("the number of noise_scales", len(self.noise_scales), 1)
 
@@ -57,8 +66,15 @@ class CollectionConfig:
     def collection_kwargs(self) -> dict:
         """The keywords of :func:`~torchrl_dalir.data.collect` that the demos and the mixed data share."""
         ray_init_config = {"address": self.ray_address} if self.ray_address else None
-        return dict(gamma=self.gamma, num_points=self.num_points, num_workers=self.num_workers, chunk_size=self.chunk_size,
-                    progress=self.progress, backend=self.backend, ray_init_config=ray_init_config)
+        return dict(
+            gamma=self.gamma,
+            num_points=self.num_points,
+            num_workers=self.num_workers,
+            chunk_size=self.chunk_size,
+            progress=self.progress,
+            backend=self.backend,
+            ray_init_config=ray_init_config,
+        )
 
     def mixed_sources(self) -> list[Source]:
         counts = [self.num_mixed // len(self.noise_scales)] * len(self.noise_scales)
@@ -76,5 +92,12 @@ PRESETS: dict[str, dict] = {
     # Sized for the whole pipeline on a 2-core CPU: fewer mixed trajectories.
     "cpu": {"num_mixed": 300},
     # Seconds, for tests: a handful of short trajectories with small clouds.
-    "smoke": {"num_demos": 2, "num_mixed": 4, "noise_scales": [0.0, 0.3], "num_points": 64, "num_workers": 1, "chunk_size": 2},
+    "smoke": {
+        "num_demos": 2,
+        "num_mixed": 4,
+        "noise_scales": [0.0, 0.3],
+        "num_points": 64,
+        "num_workers": 1,
+        "chunk_size": 2,
+    },
 }

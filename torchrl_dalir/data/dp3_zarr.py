@@ -76,7 +76,8 @@ def _open_store(store_path: Path):
     for name, array in ((STATE, state), (ACTION, action)):
         if array.ndim != 2 or array.shape[0] != cloud.shape[0]:
             raise ValueError(
-                f"{store_path}/{name} must be [{cloud.shape[0]}, dim] (one row per step, as {POINT_CLOUD}), got {array.shape}"
+                f"{store_path}/{name} must be [{cloud.shape[0]}, dim] (one row per step, as {POINT_CLOUD}), "
+                f"got {array.shape}"
             )
     ends = np.asarray(root[EPISODE_ENDS][:])
     if ends.ndim != 1 or len(ends) == 0 or not np.issubdtype(ends.dtype, np.integer):
@@ -159,7 +160,9 @@ def import_dp3_zarr(
         >>> import tempfile
         >>> import numpy as np
         >>> folder = Path(tempfile.mkdtemp())
-        >>> episode = {"point_cloud": np.random.rand(5, 100, 6), "state": np.random.rand(5, 7), "action": np.random.rand(5, 7)}
+        >>> episode = {
+        ...     "point_cloud": np.random.rand(5, 100, 6), "state": np.random.rand(5, 7), "action": np.random.rand(5, 7)
+        ... }
         >>> store = write_dp3_zarr(folder / "example.zarr", [episode, episode])
         >>> dataset = import_dp3_zarr(store, folder / "dataset", num_points=64)
         >>> dataset.num_trajectories, len(dataset.rows), dataset.rows["point_cloud"].shape[1:]

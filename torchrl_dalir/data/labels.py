@@ -133,7 +133,10 @@ class TerminalLabelTransform(Transform):
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         shape = tensordict.shape
         if not shape or shape[-1] == 0:
-            raise ValueError(f"TerminalLabelTransform needs complete trajectories along a last (time) dim, got a batch of shape {shape}")
+            raise ValueError(
+                "TerminalLabelTransform needs complete trajectories along a last (time) dim, "
+                f"got a batch of shape {shape}"
+            )
         done = tensordict.get(self.done_key).reshape(shape)
         success = tensordict.get(self.success_key).reshape(shape)
         valid = tensordict.get(self.mask_key, None)
@@ -165,7 +168,9 @@ class TerminalLabelTransform(Transform):
         """Passes labeled data through (labels are written by :meth:`inv`, e.g. on ``ReplayBuffer.extend``)."""
         missing = [key for key in self.out_keys_inv if key not in tensordict.keys(include_nested=True)]
         if missing:
-            raise KeyError(f"{missing} not found: TerminalLabelTransform labels in inv(), e.g. a collector's postproc=labels.inv")
+            raise KeyError(
+                f"{missing} not found: TerminalLabelTransform labels in inv(), e.g. a collector's postproc=labels.inv"
+            )
         return tensordict
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
@@ -197,7 +202,9 @@ def trajectory_rows(
 
     final = trajectory[-1]["next"]
     observations = {
-        key: torch.cat([trajectory[key], final[key].unsqueeze(0)]) for key in OBSERVATION_KEYS if key in trajectory.keys()
+        key: torch.cat([trajectory[key], final[key].unsqueeze(0)])
+        for key in OBSERVATION_KEYS
+        if key in trajectory.keys()
     }
     action = trajectory[keys.ACTION]
     n = num_actions + 1
@@ -206,7 +213,9 @@ def trajectory_rows(
             **observations,
             keys.ACTION: torch.cat([action, torch.zeros_like(action[:1])]),
             keys.REWARD: torch.cat([trajectory["next", keys.REWARD].reshape(num_actions), torch.zeros(1)]),
-            keys.SUCCESS: torch.cat([torch.zeros(1, dtype=torch.bool), trajectory["next", keys.SUCCESS].reshape(num_actions)]),
+            keys.SUCCESS: torch.cat(
+                [torch.zeros(1, dtype=torch.bool), trajectory["next", keys.SUCCESS].reshape(num_actions)]
+            ),
             # s_T, after the last action, has T - t = 0 actions to go: its target is y_T itself
             keys.COMPLETION_TARGET: torch.cat([labeled[keys.COMPLETION_TARGET], label[-1:]]),
             keys.TERMINAL_LABEL: torch.cat([label, label[-1:]]),

@@ -30,7 +30,8 @@ from torchrl_dalir import keys
 from torchrl_dalir.utils import atomic_write
 
 FORMAT_VERSION = 1
-SEEDING = "episode"  # every episode resets with a seed of its own; "worker" (meta.json without the field): one stream per worker
+# every episode resets with a seed of its own; "worker" (meta.json without the field): one stream per worker
+SEEDING = "episode"
 
 
 @dataclass
@@ -39,7 +40,8 @@ class DatasetMeta:
 
     Example:
         >>> meta = DatasetMeta("reach", num_points=64, gamma=0.99, seed=0, sources=[])
-        >>> meta.shards = [{"chunk": 0, "num_trajectories": 2, "num_rows": 150}, {"chunk": 1, "num_trajectories": 1, "num_rows": 81}]
+        >>> meta.shards = [{"chunk": 0, "num_trajectories": 2, "num_rows": 150},
+        ...                {"chunk": 1, "num_trajectories": 1, "num_rows": 81}]
         >>> meta.num_trajectories, meta.num_rows, meta.complete
         (3, 231, False)
     """
@@ -73,9 +75,14 @@ def _read_json(path: Path) -> dict:
     try:
         content = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path} is damaged (not valid JSON: {error}); delete its dataset directory and collect it again") from None
+        raise ValueError(
+            f"{path} is damaged (not valid JSON: {error}); delete its dataset directory and collect it again"
+        ) from None
     if not isinstance(content, dict):
-        raise ValueError(f"{path} is damaged (holds a {type(content).__name__}, not a JSON object); delete its dataset directory and collect it again")
+        raise ValueError(
+            f"{path} is damaged (holds a {type(content).__name__}, not a JSON object); "
+            "delete its dataset directory and collect it again"
+        )
     return content
 
 
@@ -108,7 +115,9 @@ def _open_columns(directory: Path, num_rows: int) -> TensorDict:
             continue
         dtype = getattr(torch, str(entry.get("dtype", "")).removeprefix("torch."), None)
         if not isinstance(dtype, torch.dtype) or "shape" not in entry or entry.get("is_nested") or "type" in entry:
-            raise ValueError(f"{directory / 'meta.json'} describes {key!r} as {entry}, not a column of this library's datasets")
+            raise ValueError(
+                f"{directory / 'meta.json'} describes {key!r} as {entry}, not a column of this library's datasets"
+            )
         shape = torch.Size(entry["shape"])
         path = directory / f"{key}.memmap"
         if not shape or shape[0] != num_rows:
@@ -117,12 +126,14 @@ def _open_columns(directory: Path, num_rows: int) -> TensorDict:
             columns[key] = torch.empty(shape, dtype=dtype)
             continue
         if not path.is_file():
-            raise FileNotFoundError(f"{path} is missing: the dataset is damaged; delete {directory.parent} and collect it again")
+            raise FileNotFoundError(
+                f"{path} is missing: the dataset is damaged; delete {directory.parent} and collect it again"
+            )
         expected, size = shape.numel() * dtype.itemsize, path.stat().st_size
         if size != expected:
             raise ValueError(
-                f"{path} has {size} bytes, but its {tuple(shape)} {dtype} column needs {expected} (a truncated or damaged "
-                f"file); delete {directory.parent} and collect it again"
+                f"{path} has {size} bytes, but its {tuple(shape)} {dtype} column needs {expected} "
+                f"(a truncated or damaged file); delete {directory.parent} and collect it again"
             )
         columns[key] = torch.from_file(str(path), shared=False, size=shape.numel(), dtype=dtype).view(shape)
     return TensorDict(columns, batch_size=[num_rows])
@@ -152,14 +163,19 @@ class DatasetWriter:
         >>> import tempfile
         >>> from torchrl_dalir.data import trajectory_rows
         >>> done = torch.tensor([[False], [False], [True]])  # 3 actions, then a success
-        >>> episode = TensorDict({"point_cloud": torch.rand(3, 8, 3), "agent_pos": torch.rand(3, 4), "action": torch.rand(3, 4),
+        >>> episode = TensorDict({"point_cloud": torch.rand(3, 8, 3), "agent_pos": torch.rand(3, 4),
+        ...                       "action": torch.rand(3, 4),
         ...                       "next": {"point_cloud": torch.rand(3, 8, 3), "agent_pos": torch.rand(3, 4),
         ...                                "reward": torch.zeros(3, 1), "success": done, "done": done}}, [3])
-        >>> writer = DatasetWriter(tempfile.mkdtemp(), DatasetMeta("synthetic", num_points=8, gamma=0.5, seed=0, sources=[]))
+        >>> meta = DatasetMeta("synthetic", num_points=8, gamma=0.5, seed=0, sources=[])
+        >>> writer = DatasetWriter(tempfile.mkdtemp(), meta)
         >>> for chunk in range(2):  # one trajectory per chunk
-        ...     writer.write_chunk(chunk, trajectory_rows(episode, trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.5))
+        ...     rows = trajectory_rows(episode, trajectory_id=0, source=0, noise_scale=0.0, expert_source=True,
+        ...                            gamma=0.5)
+        ...     writer.write_chunk(chunk, rows)
         >>> dataset = writer.finalize()  # joined, renumbered, marked complete
-        >>> dataset.num_trajectories, dataset.rows["trajectory_id"].tolist(), dataset.rows["completion_target"][:4].tolist()
+        >>> (dataset.num_trajectories, dataset.rows["trajectory_id"].tolist(),
+        ...  dataset.rows["completion_target"][:4].tolist())
         (2, [0, 0, 0, 0, 1, 1, 1, 1], [0.125, 0.25, 0.5, 1.0])
         >>> TrajectoryDataset.load(writer.root).num_trajectories  # memory-mapped, read-only
         2
@@ -223,10 +239,12 @@ class TrajectoryDataset:
     Example:
         >>> from torchrl_dalir.data import trajectory_rows
         >>> timed_out = torch.tensor([[False], [True]])  # 2 actions, then the step limit
-        >>> episode = TensorDict({"agent_pos": torch.rand(2, 4), "action": torch.rand(2, 4), "next": {"agent_pos": torch.rand(2, 4),
-        ...     "reward": torch.zeros(2, 1), "success": torch.zeros(2, 1, dtype=torch.bool), "done": timed_out}}, [2])
+        >>> episode = TensorDict({"agent_pos": torch.rand(2, 4), "action": torch.rand(2, 4), "next": {
+        ...     "agent_pos": torch.rand(2, 4), "reward": torch.zeros(2, 1),
+        ...     "success": torch.zeros(2, 1, dtype=torch.bool), "done": timed_out}}, [2])
         >>> rows = trajectory_rows(episode, trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.9)
-        >>> dataset = TrajectoryDataset(Path("in-memory"), DatasetMeta("synthetic", 8, 0.9, 0, []), rows)  # load() maps one from disk
+        >>> meta = DatasetMeta("synthetic", 8, 0.9, 0, [])
+        >>> dataset = TrajectoryDataset(Path("in-memory"), meta, rows)  # load() maps one from disk
         >>> dataset.num_trajectories, len(dataset.trajectory(0)), dataset.quality_counts()
         (1, 3, {'expert': 0, 'imperfect_success': 0, 'failed': 1})
         >>> dataset.replay_buffer(batch_size=4).sample()["terminal_label"]
@@ -242,9 +260,7 @@ class TrajectoryDataset:
         self.lengths = torch.diff(self.starts, append=torch.tensor([len(rows)]))  # rows per trajectory (T + 1)
 
     @classmethod
-    def load(
-        cls, root: str | Path, *, task: str | None = None, num_points: int | None = None
-    ) -> TrajectoryDataset:
+    def load(cls, root: str | Path, *, task: str | None = None, num_points: int | None = None) -> TrajectoryDataset:
         """Loads a complete dataset; refuses an unfinished or damaged one (naming the damaged file), or one of
         another task or shape. Nothing on disk is modified."""
         root = Path(root)
@@ -262,7 +278,9 @@ class TrajectoryDataset:
             raise ValueError(f"the dataset at {root} has {meta.num_points} points per cloud, not {num_points}")
         rows = _open_columns(root / "rows", meta.num_rows)
         if keys.POINT_CLOUD in rows.keys() and rows[keys.POINT_CLOUD].shape[-2:] != (meta.num_points, 3):
-            raise ValueError(f"{root}: point clouds of shape {tuple(rows[keys.POINT_CLOUD].shape[-2:])} contradict meta.json")
+            raise ValueError(
+                f"{root}: point clouds of shape {tuple(rows[keys.POINT_CLOUD].shape[-2:])} contradict meta.json"
+            )
         return cls(root, meta, rows)
 
     @classmethod
@@ -271,9 +289,16 @@ class TrajectoryDataset:
         size), in order, renumbered; its meta lists every source. ``root`` is the first one's."""
         first = datasets[0]
         for other in datasets[1:]:
-            if (other.meta.task, other.meta.num_points, other.meta.gamma) != (first.meta.task, first.meta.num_points, first.meta.gamma):
-                raise ValueError(f"cannot join {other.root} ({other.meta.task}, {other.meta.num_points} points, gamma {other.meta.gamma}) "
-                                 f"to {first.root} ({first.meta.task}, {first.meta.num_points} points, gamma {first.meta.gamma})")
+            if (other.meta.task, other.meta.num_points, other.meta.gamma) != (
+                first.meta.task,
+                first.meta.num_points,
+                first.meta.gamma,
+            ):
+                raise ValueError(
+                    f"cannot join {other.root} "
+                    f"({other.meta.task}, {other.meta.num_points} points, gamma {other.meta.gamma}) "
+                    f"to {first.root} ({first.meta.task}, {first.meta.num_points} points, gamma {first.meta.gamma})"
+                )
         common = set.intersection(*(set(d.rows.keys(include_nested=True, leaves_only=True)) for d in datasets))
         rows = torch.cat([d.rows.select(*common).to_tensordict() for d in datasets])
         sources, offset = [], 0

@@ -38,9 +38,11 @@ class TrajectoryWindows:
         >>> from torchrl_dalir.data import DatasetMeta, trajectory_rows
         >>> T, success = 20, torch.arange(20)[:, None] == 19  # 20 actions, then a success; agent_pos is the step
         >>> episode = TensorDict({"agent_pos": torch.arange(T * 1.0)[:, None], "action": torch.rand(T, 4), "next": {
-        ...     "agent_pos": torch.arange(1.0, T + 1)[:, None], "reward": torch.zeros(T, 1), "success": success, "done": success}}, [T])
+        ...     "agent_pos": torch.arange(1.0, T + 1)[:, None], "reward": torch.zeros(T, 1),
+        ...     "success": success, "done": success}}, [T])
         >>> rows = trajectory_rows(episode, trajectory_id=0, source=0, noise_scale=0.0, expert_source=True, gamma=0.9)
-        >>> windows = TrajectoryWindows(TrajectoryDataset(Path("in-memory"), DatasetMeta("synthetic", 8, 0.9, 0, []), rows))
+        >>> meta = DatasetMeta("synthetic", 8, 0.9, 0, [])
+        >>> windows = TrajectoryWindows(TrajectoryDataset(Path("in-memory"), meta, rows))
         >>> batch = windows[[0, 5]]  # the windows of steps 0 and 5
         >>> batch["agent_pos"].squeeze(-1).tolist(), batch["obs_is_pad"].tolist()  # step 0's history repeats it
         ([[0.0, 0.0], [4.0, 5.0]], [[True, False], [False, False]])
@@ -59,7 +61,9 @@ class TrajectoryWindows:
         observation_keys: tuple[str, ...] = (keys.POINT_CLOUD, keys.AGENT_POS),
     ):
         if obs_steps < 1 or horizon < obs_steps or future_offset < 1:
-            raise ValueError(f"need 1 <= obs_steps <= horizon and future_offset >= 1; got {obs_steps}, {horizon}, {future_offset}")
+            raise ValueError(
+                f"need 1 <= obs_steps <= horizon and future_offset >= 1; got {obs_steps}, {horizon}, {future_offset}"
+            )
         self.dataset = dataset
         self.obs_steps, self.horizon, self.future_offset = obs_steps, horizon, future_offset
         self.observation_keys = tuple(k for k in observation_keys if k in dataset.rows.keys())
@@ -109,7 +113,13 @@ class TrajectoryWindows:
                 keys.FUTURE_MASK: future_t > num_actions.squeeze(-1),
                 **{
                     key: gather(key, anchor_rows)
-                    for key in (keys.COMPLETION_TARGET, keys.TERMINAL_LABEL, keys.TRAJECTORY_ID, keys.STEP, keys.QUALITY)
+                    for key in (
+                        keys.COMPLETION_TARGET,
+                        keys.TERMINAL_LABEL,
+                        keys.TRAJECTORY_ID,
+                        keys.STEP,
+                        keys.QUALITY,
+                    )
                 },
             },
             batch_size=[batch],

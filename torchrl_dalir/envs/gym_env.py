@@ -145,8 +145,16 @@ class PointCloudObservation(gym.Wrapper):
     times fewer renders if ``k > history``. Steps are counted by the step limit, whose count :meth:`set_state` restores.
     """
 
-    def __init__(self, env: gym.Env, task: TaskSpec, num_points: int = 512, render: bool = True, pixels: int = 0,
-                 decision_period: int = 1, history: int = 1):
+    def __init__(
+        self,
+        env: gym.Env,
+        task: TaskSpec,
+        num_points: int = 512,
+        render: bool = True,
+        pixels: int = 0,
+        decision_period: int = 1,
+        history: int = 1,
+    ):
         super().__init__(env)
         self.task = task
         self.num_points = num_points
@@ -157,7 +165,10 @@ class PointCloudObservation(gym.Wrapper):
         self.decision_period, self.history = decision_period, history
         self._limit = _time_limit(env)  # the step limit's wrapper, found once: it counts the episode's steps
         if decision_period > 1 and self._limit is None:
-            raise ValueError(f"decision_period={decision_period} counts steps with the env's step limit, and {task.name}'s env has none")
+            raise ValueError(
+                f"decision_period={decision_period} counts steps with the env's step limit, "
+                f"and {task.name}'s env has none"
+            )
         state_dim = len(task.privileged_state(env.unwrapped, env.observation_space.sample()))
         unbounded = dict(low=-np.inf, high=np.inf, dtype=np.float32)
         spaces = {
@@ -210,7 +221,9 @@ class PointCloudObservation(gym.Wrapper):
 
     def step(self, action):
         if not np.isfinite(action).all():  # MuJoCo would reset the simulation and the episode would go on
-            raise ValueError(f"the action {np.asarray(action).tolist()} holds NaN or infinite values: check what the policy outputs")
+            raise ValueError(
+                f"the action {np.asarray(action).tolist()} holds NaN or infinite values: check what the policy outputs"
+            )
         state, reward, terminated, truncated, info = self.env.step(action)
         success = bool(info.get("success", False))
         info = {keys.SUCCESS: np.array([success])}

@@ -52,7 +52,11 @@ COMPARISON_GRID = (
 # sign test's p-value needs no correction for the best-of-nine choice (the winner's curse), and the
 # calibration runs two entries instead of nine.
 ARGMAX_GRID = (MARGIN_GRID[0], SelectionConfig("argmax", "ensemble"))
-GRIDS = {"margin": MARGIN_GRID, "all": MARGIN_GRID + COMPARISON_GRID, "argmax": ARGMAX_GRID}  # by name, for configurations
+GRIDS = {
+    "margin": MARGIN_GRID,
+    "all": MARGIN_GRID + COMPARISON_GRID,
+    "argmax": ARGMAX_GRID,
+}  # by name, for configurations
 # calibrate_on_failures: the base policy's validation failures that the screen waits for (10:
 # 4 won and none lost is then possible, and 7 / 1), the fewest and the most episodes it runs, and
 # the episodes between two looks at the count.
@@ -109,18 +113,38 @@ def calibrate(
         if _replays_base_policy(entry, evaluate_kwargs):
             row = {**base, "seconds": 0.0}  # margin 1: the base policy's episodes, not run again
         else:
-            row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=entry, **common)[DALIR]
+            row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=entry, **common)[
+                DALIR
+            ]
         successes = [r["success"] for r in row["records"]]
-        entries.append({"name": entry.name, "selection": entry.to_dict(), "success_rate": row["success_rate"],
-                        "vs_base": paired_sign_test(base_successes, successes), "seconds": row["seconds"]})
+        entries.append(
+            {
+                "name": entry.name,
+                "selection": entry.to_dict(),
+                "success_rate": row["success_rate"],
+                "vs_base": paired_sign_test(base_successes, successes),
+                "seconds": row["seconds"],
+            }
+        )
     chosen = choose(entries, rule, alpha)
     conservative = family(entries, rule)[0]
     confirmation = None
     if confirm_episodes and chosen is not conservative:
-        confirmation = _confirm(policy_path, world_model_path, chosen, confirm_episodes, confirm_seed, alpha, **evaluate_kwargs)
+        confirmation = _confirm(
+            policy_path, world_model_path, chosen, confirm_episodes, confirm_seed, alpha, **evaluate_kwargs
+        )
         chosen = chosen if confirmation["confirmed"] else conservative
-    record = {"episodes": episodes, "seed": seed, "rule": rule, "alpha": alpha, "base_success_rate": base["success_rate"],
-              "entries": entries, **({"confirmation": confirmation} if confirmation else {}), "chosen": chosen["name"], "selection": chosen["selection"]}
+    record = {
+        "episodes": episodes,
+        "seed": seed,
+        "rule": rule,
+        "alpha": alpha,
+        "base_success_rate": base["success_rate"],
+        "entries": entries,
+        **({"confirmation": confirmation} if confirmation else {}),
+        "chosen": chosen["name"],
+        "selection": chosen["selection"],
+    }
     if write:
         store_selection(world_model_path, SelectionConfig(**chosen["selection"]), record)
     return record
@@ -176,11 +200,22 @@ def calibrate_on_failures(
     _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed)
 
     def enough(records: list) -> bool:  # checked at block ends only
-        return len(records) % block == 0 and len(records) >= min_episodes and sum(not r.success for r in records) >= failures
+        return (
+            len(records) % block == 0
+            and len(records) >= min_episodes
+            and sum(not r.success for r in records) >= failures
+        )
 
     conservative = [entry for entry in grid if rule is None or entry.rule == rule][0]
-    base = evaluate_checkpoints(policy_path, world_model_path, methods=["base"], episodes=max_episodes, seed=seed, stop_when=enough,
-                                **evaluate_kwargs)[BASE]
+    base = evaluate_checkpoints(
+        policy_path,
+        world_model_path,
+        methods=["base"],
+        episodes=max_episodes,
+        seed=seed,
+        stop_when=enough,
+        **evaluate_kwargs,
+    )[BASE]
     failed = [r["episode"] for r in base["records"] if not r["success"]]
     solved = [r["episode"] for r in base["records"] if r["success"]][: len(failed)]
     base_rate = base["success_rate"]
@@ -188,22 +223,55 @@ def calibrate_on_failures(
     for entry in grid:
         if entry is conservative or not failed or _replays_base_policy(entry, evaluate_kwargs):
             continue
-        row = evaluate_checkpoints(policy_path, world_model_path, methods=["dalir"], selection=entry, seed=seed,
-                                   episodes=len(failed) + len(solved), episode_indices=failed + solved, **evaluate_kwargs)[DALIR]
+        row = evaluate_checkpoints(
+            policy_path,
+            world_model_path,
+            methods=["dalir"],
+            selection=entry,
+            seed=seed,
+            episodes=len(failed) + len(solved),
+            episode_indices=failed + solved,
+            **evaluate_kwargs,
+        )[DALIR]
         outcome = {r["episode"]: r["success"] for r in row["records"]}
         wins, losses = sum(outcome[e] for e in failed), sum(not outcome[e] for e in solved)
         gain = wins / len(failed) * (1 - base_rate) - (losses / len(solved) * base_rate if solved else 0.0)
-        entries.append({"name": entry.name, "selection": entry.to_dict(), "wins": wins, "losses": losses,
-                        "estimated_gain": gain, "seconds": row["seconds"]})
+        entries.append(
+            {
+                "name": entry.name,
+                "selection": entry.to_dict(),
+                "wins": wins,
+                "losses": losses,
+                "estimated_gain": gain,
+                "seconds": row["seconds"],
+            }
+        )
     ranked = [e for e in family(entries, rule) if e["estimated_gain"] > 0]
     candidate = max(ranked, key=lambda e: e["estimated_gain"]) if ranked else None  # max keeps the first of equals
     chosen, confirmation = conservative, None
     if candidate is not None:  # as many fresh episodes as the screen took: a number its outcomes cannot sway
-        confirmation = _confirm(policy_path, world_model_path, candidate, base["episodes"], confirm_seed, alpha, **evaluate_kwargs)
+        confirmation = _confirm(
+            policy_path, world_model_path, candidate, base["episodes"], confirm_seed, alpha, **evaluate_kwargs
+        )
         chosen = SelectionConfig(**candidate["selection"]) if confirmation["confirmed"] else conservative
-    record = {"design": "failures", "failures": failures, "min_episodes": min_episodes, "max_episodes": max_episodes, "block": block, "seed": seed, "rule": rule,
-              "alpha": alpha, "episodes": base["episodes"], "base_success_rate": base_rate, "failed": failed, "solved": solved,
-              "entries": entries, **({"confirmation": confirmation} if confirmation else {}), "chosen": chosen.name, "selection": chosen.to_dict()}
+    record = {
+        "design": "failures",
+        "failures": failures,
+        "min_episodes": min_episodes,
+        "max_episodes": max_episodes,
+        "block": block,
+        "seed": seed,
+        "rule": rule,
+        "alpha": alpha,
+        "episodes": base["episodes"],
+        "base_success_rate": base_rate,
+        "failed": failed,
+        "solved": solved,
+        "entries": entries,
+        **({"confirmation": confirmation} if confirmation else {}),
+        "chosen": chosen.name,
+        "selection": chosen.to_dict(),
+    }
     if write:
         store_selection(world_model_path, chosen, record)
     return record
@@ -211,21 +279,41 @@ def calibrate_on_failures(
 
 def _replays_base_policy(entry: SelectionConfig, evaluate_kwargs: dict) -> bool:
     """Whether ``entry`` replays the base policy's episodes under the evaluation's reranking settings
-    (``reranking=``, ``common_noise=``, ``search=`` of ``evaluate_kwargs``, as :func:`evaluate_checkpoints` reads them)."""
-    settings = evaluation_reranking(evaluate_kwargs.get("reranking"), common_noise=evaluate_kwargs.get("common_noise"),
-                                    search=evaluate_kwargs.get("search"))
+    (``reranking=``, ``common_noise=``, ``search=`` of ``evaluate_kwargs``, as :func:`evaluate_checkpoints`
+    reads them)."""
+    settings = evaluation_reranking(
+        evaluate_kwargs.get("reranking"),
+        common_noise=evaluate_kwargs.get("common_noise"),
+        search=evaluate_kwargs.get("search"),
+    )
     return replays_base_policy(entry, settings.common_noise, settings.search)
 
 
-def _confirm(policy_path, world_model_path, entry: dict, episodes: int, seed: int, alpha: float, **evaluate_kwargs) -> dict:
+def _confirm(
+    policy_path, world_model_path, entry: dict, episodes: int, seed: int, alpha: float, **evaluate_kwargs
+) -> dict:
     """The base policy and ``entry`` (as a calibration records it) on ``episodes`` fresh validation
     episodes of ``seed``: the confirmation's record, ``confirmed`` if the entry wins with a
     one-sided sign-test p-value of at most ``alpha``."""
-    rows = evaluate_checkpoints(policy_path, world_model_path, methods=["base", "dalir"], selection=SelectionConfig(**entry["selection"]),
-                                episodes=episodes, seed=seed, **evaluate_kwargs)
+    rows = evaluate_checkpoints(
+        policy_path,
+        world_model_path,
+        methods=["base", "dalir"],
+        selection=SelectionConfig(**entry["selection"]),
+        episodes=episodes,
+        seed=seed,
+        **evaluate_kwargs,
+    )
     vs_base = paired_sign_test(*([r["success"] for r in rows[name]["records"]] for name in (BASE, DALIR)))
-    return {"episodes": episodes, "seed": seed, "entry": entry["name"], "base_success_rate": rows[BASE]["success_rate"],
-            "success_rate": rows[DALIR]["success_rate"], "vs_base": vs_base, "confirmed": p_better(vs_base["base_only"], vs_base["dalir_only"]) <= alpha}
+    return {
+        "episodes": episodes,
+        "seed": seed,
+        "entry": entry["name"],
+        "base_success_rate": rows[BASE]["success_rate"],
+        "success_rate": rows[DALIR]["success_rate"],
+        "vs_base": vs_base,
+        "confirmed": p_better(vs_base["base_only"], vs_base["dalir_only"]) <= alpha,
+    }
 
 
 def _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed) -> None:
@@ -237,12 +325,16 @@ def _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, con
     if test_seed in [seed, *([confirm_seed] if confirm_seed is not None else [])]:
         raise ValueError(f"calibration must not read the test episodes (evaluation seed {test_seed}); use another seed")
     if confirm_seed is not None and confirm_seed == seed:
-        raise ValueError(f"the confirmation needs fresh validation episodes: confirm_seed must differ from seed ({seed})")
+        raise ValueError(
+            f"the confirmation needs fresh validation episodes: confirm_seed must differ from seed ({seed})"
+        )
     if rule is not None and not any(entry.rule == rule for entry in grid):
         raise ValueError(f"no entry of the grid has rule {rule!r}: {[entry.name for entry in grid]}")
     checkpoint = load_world_model(world_model_path)
     if checkpoint.ensemble is None and any(entry.scorer == "ensemble" for entry in grid):
-        raise ValueError(f"{world_model_path} has no scorer ensemble (written before version 0.2.0): retrain the world-model stage")
+        raise ValueError(
+            f"{world_model_path} has no scorer ensemble (written before version 0.2.0): retrain the world-model stage"
+        )
 
 
 def choose(entries: list[dict], rule: str | None = None, alpha: float = ALPHA) -> dict:
@@ -250,7 +342,11 @@ def choose(entries: list[dict], rule: str | None = None, alpha: float = ALPHA) -
     conservative first), restricted to those of ``rule`` if given: the most successes among the
     first entry and the entries that beat the base policy with a one-sided sign-test p-value of at
     most ``alpha``; ties go to the entry listed first (``alpha=1``: simply the most successes)."""
-    eligible = [e for i, e in enumerate(family(entries, rule)) if i == 0 or p_better(e["vs_base"]["base_only"], e["vs_base"]["dalir_only"]) <= alpha]
+    eligible = [
+        e
+        for i, e in enumerate(family(entries, rule))
+        if i == 0 or p_better(e["vs_base"]["base_only"], e["vs_base"]["dalir_only"]) <= alpha
+    ]
     return max(eligible, key=lambda e: e["success_rate"])  # max keeps the first of equals
 
 

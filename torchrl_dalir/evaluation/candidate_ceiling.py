@@ -7,8 +7,9 @@ executes a candidate whose branch succeeded (ties: the clean candidate, then the
 success), so its success rate bounds what any scorer could reach with these candidates.
 
 Common random numbers make this cheap and exact (:mod:`~torchrl_dalir.reranking.branching`): the
-clean candidate's branch from decision ``j`` *is* the base episode from there on, and after the oracle executes a winning candidate its next clean candidate
-replays that winning branch. The oracle's episode therefore succeeds exactly when the base
+clean candidate's branch from decision ``j`` *is* the base episode from there on, and after the
+oracle executes a winning candidate its next clean candidate replays that winning branch. The
+oracle's episode therefore succeeds exactly when the base
 episode succeeds or, at some decision along it, a candidate's branch succeeds; it follows the
 base episode until the first such decision. Only failed base episodes are branched, and each
 generator's search stops at the first decision with a winning branch (``exhaustive=True`` runs
@@ -39,28 +40,57 @@ def oracle_choice(successes: list[bool], steps: list[int]) -> int | None:
     return min(winners, key=lambda k: (steps[k], k)) if winners else None
 
 
-def ceiling_episode(env: PointCloudObservation, policy, generators: dict[str, object], episode_seed: int,
-                    num_candidates: int = 8, exhaustive: bool = False, stride: int = 1, device="cpu") -> dict:
+def ceiling_episode(
+    env: PointCloudObservation,
+    policy,
+    generators: dict[str, object],
+    episode_seed: int,
+    num_candidates: int = 8,
+    exhaustive: bool = False,
+    stride: int = 1,
+    device="cpu",
+) -> dict:
     """One episode: the base policy's outcome and, per generator, the oracle's (see the module docstring).
     With ``stride > 1`` the oracle chooses only at every ``stride``-th decision (and keeps the base
     policy's chunk at the others): a lower bound on the every-decision ceiling, at ``1 / stride`` of the cost."""
     device = torch.device(device)
     observation, _ = env.reset(seed=episode_seed)
     decisions: list[tuple] = []  # (simulator state, observations so far) at every decision of the base episode
-    base_success, base_steps = continue_base(env, policy, [observation], episode_seed, 0, device,
-                                             visit=lambda _, obs: decisions.append((env.get_state(), obs)))
-    record = {"reset_seed": episode_seed, "base_success": base_success, "base_steps": base_steps,
-              "decisions": len(decisions), "generators": {}}
+    base_success, base_steps = continue_base(
+        env,
+        policy,
+        [observation],
+        episode_seed,
+        0,
+        device,
+        visit=lambda _, obs: decisions.append((env.get_state(), obs)),
+    )
+    record = {
+        "reset_seed": episode_seed,
+        "base_success": base_success,
+        "base_steps": base_steps,
+        "decisions": len(decisions),
+        "generators": {},
+    }
     for name, generator in generators.items():
-        outcome = {"success": base_success, "decision": 0 if base_success else None, "candidate": 0 if base_success else None,
-                   "steps": base_steps if base_success else None, "branches": 0, "winners": None}
+        outcome = {
+            "success": base_success,
+            "decision": 0 if base_success else None,
+            "candidate": 0 if base_success else None,
+            "steps": base_steps if base_success else None,
+            "branches": 0,
+            "winners": None,
+        }
         if exhaustive:
             outcome["branch_successes"] = []
         if not base_success or exhaustive:
             for j, (state, observations) in enumerate(decisions):
                 if j % stride:
                     continue
-                actions = executed_actions(policy, candidate_chunks(policy, generator, observations, num_candidates, episode_seed, j, name, device))
+                actions = executed_actions(
+                    policy,
+                    candidate_chunks(policy, generator, observations, num_candidates, episode_seed, j, name, device),
+                )
                 # candidate 0's branch is the base episode from decision j: its outcome is known
                 successes, steps = [base_success], [base_steps - j * policy.action_steps]
                 for k in range(1, num_candidates):
@@ -72,17 +102,34 @@ def ceiling_episode(env: PointCloudObservation, policy, generators: dict[str, ob
                     outcome["branch_successes"].append(successes)
                 chosen = oracle_choice(successes, steps)
                 if chosen is not None and outcome["decision"] in (None, j):
-                    outcome.update(success=True, decision=j, candidate=chosen, winners=sum(successes),
-                                   steps=j * policy.action_steps + steps[chosen])
+                    outcome.update(
+                        success=True,
+                        decision=j,
+                        candidate=chosen,
+                        winners=sum(successes),
+                        steps=j * policy.action_steps + steps[chosen],
+                    )
                     if not exhaustive:
                         break
         record["generators"][name] = outcome
     return record
 
 
-def candidate_ceiling(policy, task: str | TaskSpec, generators: dict[str, object], *, episodes: int = 20, seed: int = 1,
-                      num_candidates: int = 8, exhaustive: bool = False, stride: int = 1, done: Iterable[int] = (),
-                      on_episode: Callable[[dict], None] | None = None, progress: bool = True, device="cpu") -> list[dict]:
+def candidate_ceiling(
+    policy,
+    task: str | TaskSpec,
+    generators: dict[str, object],
+    *,
+    episodes: int = 20,
+    seed: int = 1,
+    num_candidates: int = 8,
+    exhaustive: bool = False,
+    stride: int = 1,
+    done: Iterable[int] = (),
+    on_episode: Callable[[dict], None] | None = None,
+    progress: bool = True,
+    device="cpu",
+) -> list[dict]:
     """The ceiling over ``episodes`` evaluation episodes of evaluation ``seed`` (use a validation seed):
     a record per episode (:func:`ceiling_episode`, plus ``episode``). Episodes in ``done`` are skipped
     (resumption); ``on_episode`` receives each new record as soon as it is finished."""
@@ -92,14 +139,26 @@ def candidate_ceiling(policy, task: str | TaskSpec, generators: dict[str, object
     if num_candidates < 2:
         raise ValueError(f"num_candidates must be at least 2 (the clean candidate and one more), got {num_candidates}")
     check_at_least("stride", stride, 1)
-    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps,
-                                history=policy.obs_steps)
+    env = PointCloudObservation(
+        make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps, history=policy.obs_steps
+    )
     done, records = set(done), []
     try:
         todo = [e for e in range(episodes) if e not in done]
         for episode in tqdm(todo, desc=f"ceiling {spec.name}", disable=not progress):
-            record = {"episode": episode, **ceiling_episode(env, policy, generators, eval_episode_seed(seed, episode),
-                                                            num_candidates, exhaustive, stride, device)}
+            record = {
+                "episode": episode,
+                **ceiling_episode(
+                    env,
+                    policy,
+                    generators,
+                    eval_episode_seed(seed, episode),
+                    num_candidates,
+                    exhaustive,
+                    stride,
+                    device,
+                ),
+            }
             records.append(record)
             if on_episode is not None:
                 on_episode(record)
@@ -112,8 +171,12 @@ def summarize_ceiling(records: list[dict]) -> dict:
     """Success rates of the base policy and of the oracle per generator, over the episodes of ``records``;
     the failures each generator fixes; and, with exhaustive records, how many decisions split."""
     base = [r["base_success"] for r in records]
-    summary = {"episodes": len(records), "base_successes": int(sum(base)),
-               "base_success_rate": float(np.mean(base)) if base else float("nan"), "generators": {}}
+    summary = {
+        "episodes": len(records),
+        "base_successes": int(sum(base)),
+        "base_success_rate": float(np.mean(base)) if base else float("nan"),
+        "generators": {},
+    }
     for name in records[0]["generators"] if records else ():
         outcomes = [r["generators"][name] for r in records]
         fixed = [o for o, r in zip(outcomes, records) if o["success"] and not r["base_success"]]

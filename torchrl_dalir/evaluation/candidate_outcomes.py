@@ -35,7 +35,9 @@ def _base_chunk(policy, observations: list[dict], generator: torch.Generator, de
     return chunk[policy.config.executed].cpu().numpy()
 
 
-def _follow_through(env: PointCloudObservation, policy, observations: list[dict], generator: torch.Generator, device: torch.device) -> bool:
+def _follow_through(
+    env: PointCloudObservation, policy, observations: list[dict], generator: torch.Generator, device: torch.device
+) -> bool:
     """Runs the base policy after the episode's ``observations`` until the episode ends; whether it succeeded."""
     while True:
         new_observations, success, ended = execute_actions(env, _base_chunk(policy, observations, generator, device))
@@ -84,7 +86,9 @@ def candidate_outcomes(
     base_generator = torch.Generator().manual_seed(actor.seed + 1)  # skipped decisions and follow-throughs
     config = policy.config  # decisions every action_steps steps from the reset, each reading obs_steps observations
     period = 1 if render_every_step else config.action_steps
-    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, decision_period=period, history=config.obs_steps)
+    env = PointCloudObservation(
+        make_simulator(spec), spec, policy.num_points, decision_period=period, history=config.obs_steps
+    )
     records = []
     try:
         for episode in tqdm(range(episodes), desc=f"candidate outcomes {spec.name}", disable=not progress, leave=False):
@@ -92,9 +96,13 @@ def candidate_outcomes(
             observations = [observation]  # the episode's so far
             for decision in range(decisions):
                 if decision % stride:
-                    clean_observations, _, ended = execute_actions(env, _base_chunk(policy, observations, base_generator, device))
+                    clean_observations, _, ended = execute_actions(
+                        env, _base_chunk(policy, observations, base_generator, device)
+                    )
                 else:
-                    record, clean_observations, ended = _try_candidates(actor, env, observations, base_generator, follow_through, device)
+                    record, clean_observations, ended = _try_candidates(
+                        actor, env, observations, base_generator, follow_through, device
+                    )
                     records.append({"episode": episode, "decision": decision, **record})
                 if ended:
                     break
@@ -104,8 +112,16 @@ def candidate_outcomes(
     return records
 
 
-def _try_candidates(actor: RerankingActor, env: PointCloudObservation, observations: list[dict], base_generator, follow_through: bool, device):
-    """One decision's record after the episode's ``observations``; leaves ``env`` after the clean candidate's actions."""
+def _try_candidates(
+    actor: RerankingActor,
+    env: PointCloudObservation,
+    observations: list[dict],
+    base_generator,
+    follow_through: bool,
+    device,
+):
+    """One decision's record after the episode's ``observations``; leaves ``env`` after the clean
+    candidate's actions."""
     cloud, agent_pos = observation_history(actor.policy, observations, device)
     chunks, scores = actor.propose(cloud, agent_pos)
     imagined = actor.imagine(cloud, agent_pos, chunks)[0]
@@ -118,7 +134,9 @@ def _try_candidates(actor: RerankingActor, env: PointCloudObservation, observati
         if k == 0:
             after_clean = env.get_state()
         if follow_through:
-            final_success.append(success if ended else _follow_through(env, actor.policy, observations + outcome, base_generator, device))
+            final_success.append(
+                success if ended else _follow_through(env, actor.policy, observations + outcome, base_generator, device)
+            )
     env.set_state(after_clean)
     real = actor.encoder(*stack_observations([o[-1] for o, _, _ in outcomes], device))
     real_score = torch.sigmoid(actor.scorer(real))
@@ -148,7 +166,8 @@ def within_decision_auc(scores, successes) -> float:
     ``successes``: one sequence per decision, ``[K]`` each.
 
     Example:
-        >>> within_decision_auc([[0.9, 0.1, 0.5], [0.2, 0.2], [0.3, 0.7]], [[True, False, False], [True, False], [True, True]])
+        >>> within_decision_auc([[0.9, 0.1, 0.5], [0.2, 0.2], [0.3, 0.7]],
+        ...                     [[True, False, False], [True, False], [True, True]])
         0.75
     """
     values = []
@@ -168,7 +187,8 @@ def summarize_candidate_outcomes(records: list[dict]) -> dict:
     correlations = [r["rank_correlation"] for r in records if np.isfinite(r["rank_correlation"])]
     # The pick's percentile among the other candidates' real scores: 1 best, 0 worst, 0.5 chance.
     percentiles = [
-        sum(s < r["real_score"][r["chosen"]] for s in r["real_score"]) / max(len(r["real_score"]) - 1, 1) for r in records
+        sum(s < r["real_score"][r["chosen"]] for s in r["real_score"]) / max(len(r["real_score"]) - 1, 1)
+        for r in records
     ]
     # Decisions where some candidates, not all, finish the task within their actions.
     split = [r for r in records if 0 < sum(r["success"]) < len(r["success"])]
@@ -179,11 +199,17 @@ def summarize_candidate_outcomes(records: list[dict]) -> dict:
         "median_real_std": median(float(np.std(r["real_score"])) for r in records),
         "median_error_over_spread": median(r["imagination_error"] / max(r["real_spread"], 1e-12) for r in records),
         "mean_pick_percentile": float(np.mean(percentiles)),
-        "pick_real_score_gain": float(np.mean([r["real_score"][r["chosen"]] - np.mean(r["real_score"]) for r in records])),
+        "pick_real_score_gain": float(
+            np.mean([r["real_score"][r["chosen"]] - np.mean(r["real_score"]) for r in records])
+        ),
         "decisions_some_candidates_succeed": len(split),
         "pick_succeeds_there": float(np.mean([r["success"][r["chosen"]] for r in split])) if split else float("nan"),
         "candidates_succeed_there": float(np.mean([np.mean(r["success"]) for r in split])) if split else float("nan"),
-        **({"extreme_score_distance_correlation": _extreme_score_distance_correlation(records)} if all("action_distance" in r for r in records) else {}),
+        **(
+            {"extreme_score_distance_correlation": _extreme_score_distance_correlation(records)}
+            if all("action_distance" in r for r in records)
+            else {}
+        ),
         **_follow_through_summary([r for r in records if "final_success" in r]),
     }
 
@@ -256,6 +282,9 @@ def _follow_through_summary(records: list[dict]) -> dict:
         "real_score_auc_there": auc("real_score"),
         **({"ensemble_score_auc_there": auc("ensemble_score")} if all("ensemble_score" in r for r in records) else {}),
         "final_success_by_imagined_score_quarter": success_by_score_rank(records),
-        **({"final_success_by_ensemble_score_quarter": success_by_score_rank(records, "ensemble_score")}
-           if all("ensemble_score" in r for r in records) else {}),
+        **(
+            {"final_success_by_ensemble_score_quarter": success_by_score_rank(records, "ensemble_score")}
+            if all("ensemble_score" in r for r in records)
+            else {}
+        ),
     }

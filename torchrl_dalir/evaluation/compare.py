@@ -21,10 +21,24 @@ from torchrl_dalir.reranking.candidates import DropoutPolicy
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.seeds import check_eval_seed
 
-BASE, DALIR, ARGMAX, RANDOM, DROPOUT = "base policy", "DALI-R", "DALI-R argmax", "random candidate", "point-dropout policy"
-METHODS = {"base": BASE, "dalir": DALIR, "argmax": ARGMAX, "random": RANDOM, "dropout": DROPOUT}  # short names for command lines
+BASE, DALIR, ARGMAX, RANDOM, DROPOUT = (
+    "base policy",
+    "DALI-R",
+    "DALI-R argmax",
+    "random candidate",
+    "point-dropout policy",
+)
+METHODS = {
+    "base": BASE,
+    "dalir": DALIR,
+    "argmax": ARGMAX,
+    "random": RANDOM,
+    "dropout": DROPOUT,
+}  # short names for command lines
 RERANKING = ("dalir", "argmax", "random")  # the methods that choose among candidates: they need a world model
-COMMON_NOISE = True  # evaluations sample DALI-R's clean candidate as the base policy does (RerankingActor's common_noise)
+COMMON_NOISE = (
+    True  # evaluations sample DALI-R's clean candidate as the base policy does (RerankingActor's common_noise)
+)
 
 
 def evaluation_reranking(reranking: RerankingConfig | None = None, **settings) -> RerankingConfig:
@@ -41,8 +55,9 @@ def evaluation_reranking(reranking: RerankingConfig | None = None, **settings) -
     return base.updated(**settings)
 
 
-def check_evaluation_settings(episodes: int, seed: int, num_candidates: int = 1, dropout: float = 0.0, *, prefix: str = "",
-                              video: int = 0) -> None:
+def check_evaluation_settings(
+    episodes: int, seed: int, num_candidates: int = 1, dropout: float = 0.0, *, prefix: str = "", video: int = 0
+) -> None:
     """Refuses evaluation settings before any episode runs: fewer than one episode, a negative
     evaluation seed (:func:`~torchrl_dalir.seeds.check_eval_seed`), fewer than one candidate, a
     dropout probability outside ``[0, 1)``, a negative number of videos. ``prefix`` names the
@@ -95,8 +110,9 @@ def evaluate_checkpoints(
     default the paper's settings with common noise, :func:`evaluation_reranking`) holds every
     reranking setting; ``num_candidates``, ``dropout``, ``selection``, ``common_noise`` and
     ``search``, when given, replace its own (``selection=None``: the checkpoint's rule). Returns
-    ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with ``success_rate``, ``episodes``, ``seconds`` and per-episode ``records``; the reranking
-    methods' records describe their choices in ``details`` (:func:`decision_summary`).
+    ``{"base policy": {...}, "DALI-R": {...}, ...}``, each with ``success_rate``, ``episodes``,
+    ``seconds`` and per-episode ``records``; the reranking methods' records describe their choices
+    in ``details`` (:func:`decision_summary`).
 
     ``max_steps`` stops every episode early (for quick checks). ``video=n`` records the first
     ``n`` episodes of each method as ``<video_dir>/<method>_episode_<i>.gif`` (TorchRL's
@@ -111,8 +127,14 @@ def evaluate_checkpoints(
     calibration that kept the base policy): its row is the base policy's episodes, marked
     ``"replays": "base policy"`` and without the per-decision ``details`` (run ``base`` first).
     """
-    config = evaluation_reranking(reranking, num_candidates=num_candidates, dropout=dropout, selection=selection,
-                                  common_noise=common_noise, search=search)
+    config = evaluation_reranking(
+        reranking,
+        num_candidates=num_candidates,
+        dropout=dropout,
+        selection=selection,
+        common_noise=common_noise,
+        search=search,
+    )
     selection, common_noise, search = config.selection, config.common_noise, config.search
     check_evaluation_settings(episodes, seed, config.num_candidates, config.dropout, video=video)
     if video and video_dir is None:
@@ -122,12 +144,18 @@ def evaluate_checkpoints(
     if unknown:
         raise ValueError(f"unknown methods {sorted(unknown)}; choose among {sorted(METHODS)}")
     if world_model_path is None and set(methods) & set(RERANKING):
-        raise ValueError(f"methods {sorted(set(methods) & set(RERANKING))} rerank candidates: they need a world_model_path")
+        raise ValueError(
+            f"methods {sorted(set(methods) & set(RERANKING))} rerank candidates: they need a world_model_path"
+        )
     policy = load_policy(policy_path, device)
     if world_model_path is not None:  # fails now, not after the base policy's episodes
         stored = load_world_model(world_model_path, policy=policy).selection
     actors = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
-    rules = {"dalir": {"selection": selection} if selection is not None else {}, "argmax": {"selection": SelectionConfig()}, "random": {}}
+    rules = {
+        "dalir": {"selection": selection} if selection is not None else {},
+        "argmax": {"selection": SelectionConfig()},
+        "random": {},
+    }
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}
     rows, by_rule = {}, {}  # DALI-R with the same rule on the same episodes gives the same row: run it once
     for method in methods:
@@ -137,8 +165,18 @@ def evaluate_checkpoints(
                 rows[METHODS[method]] = by_rule[rule.name]
                 continue
             if BASE in rows and replays_base_policy(rule, common_noise, search):
-                rows[METHODS[method]] = by_rule[rule.name] = {"selection": rule.name, **rows[BASE], "records": list(rows[BASE]["records"]), "seconds": 0.0, "replays": BASE}
-                print(f"[evaluation] {policy.task} {METHODS[method]}: {rule.name} keeps the clean candidate: the base policy's episodes", flush=True)
+                rows[METHODS[method]] = by_rule[rule.name] = {
+                    "selection": rule.name,
+                    **rows[BASE],
+                    "records": list(rows[BASE]["records"]),
+                    "seconds": 0.0,
+                    "replays": BASE,
+                }
+                print(
+                    f"[evaluation] {policy.task} {METHODS[method]}: {rule.name} keeps the clean candidate: "
+                    "the base policy's episodes",
+                    flush=True,
+                )
                 continue
         start = time.perf_counter()
         if method == "base":
@@ -146,15 +184,27 @@ def evaluate_checkpoints(
         elif method == "dropout":
             actor, describe = receding_horizon(DropoutPolicy(policy, config.dropout, actor_seed)), None
         else:
-            chooser = actors[method].on_policy(policy, world_model_path, device, config=config, seed=actor_seed, candidates=candidates,
-                                               **rules[method])
+            chooser = actors[method].on_policy(
+                policy, world_model_path, device, config=config, seed=actor_seed, candidates=candidates, **rules[method]
+            )
             actor = receding_horizon(chooser)  # every step carries its decision's scores and choice
             describe = partial(decision_summary, action_steps=policy.config.action_steps)
         name = METHODS[method]
         torch.manual_seed(actor_seed)  # after building the actor, whose modules' initialisation draws from it
         videos = {"video": video, "video_prefix": Path(video_dir) / f"{method}_episode"} if video else {}
-        result = evaluate(actor, policy.task, episodes, seed, progress=progress, describe=describe, max_steps=max_steps,
-                          episode_indices=episode_indices, stop_when=stop_when, **videos, **env_kwargs)
+        result = evaluate(
+            actor,
+            policy.task,
+            episodes,
+            seed,
+            progress=progress,
+            describe=describe,
+            max_steps=max_steps,
+            episode_indices=episode_indices,
+            stop_when=stop_when,
+            **videos,
+            **env_kwargs,
+        )
         rows[name] = {
             **({"selection": chooser.selection.name} if method in ("dalir", "argmax") else {}),
             "success_rate": result.success_rate,
@@ -164,11 +214,16 @@ def evaluate_checkpoints(
         }
         if method in ("dalir", "argmax"):
             by_rule[rule.name] = rows[name]
-        print(f"[evaluation] {policy.task} {name}: {result.success_rate:.1%} over {len(result.episodes)} episodes", flush=True)
+        print(
+            f"[evaluation] {policy.task} {name}: {result.success_rate:.1%} over {len(result.episodes)} episodes",
+            flush=True,
+        )
     return rows
 
 
-def replays_base_policy(selection: SelectionConfig, common_noise: bool = True, search: SearchConfig | None = None) -> bool:
+def replays_base_policy(
+    selection: SelectionConfig, common_noise: bool = True, search: SearchConfig | None = None
+) -> bool:
     """Whether DALI-R with ``selection`` plays exactly the base policy's episodes, so need not be
     run: its rule keeps the clean candidate at every decision, which common noise samples as the
     base policy does, and no action-space search replaces the candidates (``search`` is ``None``
@@ -224,5 +279,9 @@ def decision_summary(rollout: TensorDictBase, action_steps: int) -> dict:
 def pool_decision_summaries(summaries: list[dict]) -> dict:
     """:func:`decision_summary` over many episodes: means weighted by each episode's decisions."""
     total = sum(s["decisions"] for s in summaries)
-    pooled = {key: sum(s[key] * s["decisions"] for s in summaries) / max(total, 1) for key in summaries[0] if key != "decisions"}
+    pooled = {
+        key: sum(s[key] * s["decisions"] for s in summaries) / max(total, 1)
+        for key in summaries[0]
+        if key != "decisions"
+    }
     return {"decisions": total, **pooled}

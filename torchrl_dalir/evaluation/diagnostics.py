@@ -19,7 +19,9 @@ def imagination_curves(parts, dataset: TrajectoryDataset, trajectory: int, actio
     starts = torch.arange(0, num_actions - action_steps + 1)
     actions = torch.stack([rows[keys.ACTION][s : s + action_steps] for s in starts.tolist()]) if len(starts) else None
     imagined = (
-        torch.sigmoid(parts.scorer(parts.world_model.imagine(latents[starts], actions))) if actions is not None else torch.zeros(0)
+        torch.sigmoid(parts.scorer(parts.world_model.imagine(latents[starts], actions)))
+        if actions is not None
+        else torch.zeros(0)
     )
     return {
         "label": float(rows[keys.TERMINAL_LABEL][0]),

@@ -59,7 +59,14 @@ def plot_imagination_diagnostics(curves: list[dict], path: str | Path, title: st
         name = "success" if curve["label"] else "failure"
         left.plot(curve["step"], curve["target"], "--", color=color, alpha=0.8, label=f"MC target ({name})")
         left.plot(curve["step"], curve["score"], "-", color=color, label=f"scorer ({name})")
-        right.plot(curve["future_step"], curve["true_future_score"], "--", color=color, alpha=0.8, label=f"true future latent ({name})")
+        right.plot(
+            curve["future_step"],
+            curve["true_future_score"],
+            "--",
+            color=color,
+            alpha=0.8,
+            label=f"true future latent ({name})",
+        )
         right.plot(curve["future_step"], curve["imagined_score"], "-", color=color, label=f"imagined latent ({name})")
     left.set_title("task-completion scorer")
     right.set_title("world model: imagined vs true future")
@@ -72,8 +79,12 @@ def plot_imagination_diagnostics(curves: list[dict], path: str | Path, title: st
     return _save(fig, path)
 
 
-def plot_success_by_task(table: list[dict], path: str | Path, title: str = "",
-                         methods: tuple[tuple[str, str], ...] = (("base", "base policy"), ("dalir", "+ DALI-R"))) -> Path:
+def plot_success_by_task(
+    table: list[dict],
+    path: str | Path,
+    title: str = "",
+    methods: tuple[tuple[str, str], ...] = (("base", "base policy"), ("dalir", "+ DALI-R")),
+) -> Path:
     """Grouped bars of each method's success per task (mean over seeds, std as error bars, one dot
     per seed). ``table`` rows: ``task`` and, for every ``(key, label)`` of ``methods``, ``key``
     (a list of per-seed rates), and optionally ``<key>_paper`` (the paper's rate, drawn as a bar-wide
@@ -81,9 +92,15 @@ def plot_success_by_task(table: list[dict], path: str | Path, title: str = "",
     return plot_metric_by_task(table, path, "success (%)", title, methods, scale=100, ylim=(0, 100))
 
 
-def plot_metric_by_task(table: list[dict], path: str | Path, ylabel: str, title: str = "",
-                        methods: tuple[tuple[str, str], ...] = (("base", "base policy"), ("dalir", "+ DALI-R")),
-                        scale: float = 1.0, ylim: tuple[float, float] | None = None) -> Path:
+def plot_metric_by_task(
+    table: list[dict],
+    path: str | Path,
+    ylabel: str,
+    title: str = "",
+    methods: tuple[tuple[str, str], ...] = (("base", "base policy"), ("dalir", "+ DALI-R")),
+    scale: float = 1.0,
+    ylim: tuple[float, float] | None = None,
+) -> Path:
     """Grouped bars of each method's value of a metric per task, times ``scale`` (mean over seeds, std as
     error bars, one dot per seed, a line at ``<key>_paper`` where a row has it); ``table`` rows as for
     :func:`plot_success_by_task`, with per-seed values.
@@ -101,13 +118,32 @@ def plot_metric_by_task(table: list[dict], path: str | Path, ylabel: str, title:
     for i, (key, label) in enumerate(methods):
         offset = (i - (len(methods) - 1) / 2) * width
         values = [scale * np.asarray(row[key]) for row in table]
-        ax.bar(x + offset, [v.mean() for v in values], width * 0.95, yerr=[v.std() for v in values], capsize=3, label=label, alpha=0.8)
+        ax.bar(
+            x + offset,
+            [v.mean() for v in values],
+            width * 0.95,
+            yerr=[v.std() for v in values],
+            capsize=3,
+            label=label,
+            alpha=0.8,
+        )
         for j, v in enumerate(values):
             ax.scatter(np.full(len(v), x[j] + offset), v, color="k", s=8, zorder=3)
-        papers = [(x[j] + offset, scale * row[f"{key}_paper"]) for j, row in enumerate(table) if row.get(f"{key}_paper") is not None]
+        papers = [
+            (x[j] + offset, scale * row[f"{key}_paper"])
+            for j, row in enumerate(table)
+            if row.get(f"{key}_paper") is not None
+        ]
         if papers:
-            ax.hlines([y for _, y in papers], [c - width * 0.45 for c, _ in papers], [c + width * 0.45 for c, _ in papers],
-                      colors="k", linewidth=2, zorder=4, label="paper" if i == 0 else None)
+            ax.hlines(
+                [y for _, y in papers],
+                [c - width * 0.45 for c, _ in papers],
+                [c + width * 0.45 for c, _ in papers],
+                colors="k",
+                linewidth=2,
+                zorder=4,
+                label="paper" if i == 0 else None,
+            )
     ax.set_xticks(x, [row["task"] for row in table])
     ax.set_ylabel(ylabel)
     if ylim is not None:
@@ -129,9 +165,11 @@ def plot_data_scale(table: list[dict], path: str | Path, title: str = "Mixed-qua
         x = np.arange(len(rows))
         for ax, key, scale in ((axes[0], "wm_mse", 1), (axes[1], "success", 100)):
             values = [scale * np.asarray(row[key]) for row in rows]
-            line, = ax.plot(x, [v.mean() for v in values], marker="o", label=task)
+            (line,) = ax.plot(x, [v.mean() for v in values], marker="o", label=task)
             if key == "success" and rows[0].get("base"):
-                ax.axhline(100 * np.mean(rows[0]["base"]), color=line.get_color(), linestyle="--", label=f"{task}: base policy")
+                ax.axhline(
+                    100 * np.mean(rows[0]["base"]), color=line.get_color(), linestyle="--", label=f"{task}: base policy"
+                )
             for i, v in enumerate(values):
                 ax.scatter(np.full(len(v), i), v, color="k", s=8, zorder=3)
             ax.set_xticks(x, [str(row["mixed_trajectories"]) for row in rows])
@@ -145,20 +183,26 @@ def plot_data_scale(table: list[dict], path: str | Path, title: str = "Mixed-qua
     return _save(fig, path)
 
 
-def plot_candidate_scaling(table: list[dict], path: str | Path, title: str = "Success against the number of candidates") -> Path:
+def plot_candidate_scaling(
+    table: list[dict], path: str | Path, title: str = "Success against the number of candidates"
+) -> Path:
     """Success against the number of candidates N (log scale), one line per row of ``table`` (a run
     and a reranking method: ``run``, ``method``, ``candidates`` and ``success``, N = 1 being the base
     policy), as in the paper's Figure 3(b).
 
     Example:
         >>> import tempfile
-        >>> table = [{"run": "disassemble dp", "method": "argmax", "candidates": [1, 8, 32], "success": [0.72, 0.8, 0.86]}]
+        >>> table = [
+        ...     {"run": "disassemble dp", "method": "argmax", "candidates": [1, 8, 32], "success": [0.72, 0.8, 0.86]}
+        ... ]
         >>> plot_candidate_scaling(table, Path(tempfile.mkdtemp()) / "doc_scaling.png").name
         'doc_scaling.png'
     """
     fig, ax = plt.subplots(figsize=(4.8, 3.2), dpi=90)
     for row in table:
-        ax.plot(row["candidates"], [100 * s for s in row["success"]], marker="o", label=f"{row['run']}, {row['method']}")
+        ax.plot(
+            row["candidates"], [100 * s for s in row["success"]], marker="o", label=f"{row['run']}, {row['method']}"
+        )
     counts = sorted({n for row in table for n in row["candidates"]})
     ax.set_xscale("log", base=2)
     ax.set_xticks(counts, [str(n) for n in counts])
@@ -179,7 +223,8 @@ def plot_candidate_spread(chunks: dict, path: str | Path, title: str = "") -> Pa
     Example:
         >>> import tempfile, torch
         >>> g = torch.Generator().manual_seed(0)
-        >>> chunks = {"noise_only": 0.01 * torch.randn(8, 16, 4, generator=g), "dropout": torch.randn(8, 16, 4, generator=g)}
+        >>> chunks = {"noise_only": 0.01 * torch.randn(8, 16, 4, generator=g),
+        ...           "dropout": torch.randn(8, 16, 4, generator=g)}
         >>> plot_candidate_spread(chunks, Path(tempfile.mkdtemp()) / "doc_spread.png").name
         'doc_spread.png'
     """
@@ -230,8 +275,12 @@ def plot_candidate_outcomes(records: list[dict], path: str | Path, title: str = 
         scores = ["imagined_score", *(["ensemble_score"] if all("ensemble_score" in r for r in records) else [])]
         width = 0.8 / len(scores)
         for i, score in enumerate(scores):
-            right.bar(np.arange(4) + i * width, success_by_score_rank(records, score), width, label=score.replace("_", " "))
-        right.axhline(np.mean([np.mean(r["final_success"]) for r in records]), color="k", lw=0.8, ls="--", label="all candidates")
+            right.bar(
+                np.arange(4) + i * width, success_by_score_rank(records, score), width, label=score.replace("_", " ")
+            )
+        right.axhline(
+            np.mean([np.mean(r["final_success"]) for r in records]), color="k", lw=0.8, ls="--", label="all candidates"
+        )
         right.set_xticks(np.arange(4) + 0.4 - width / 2, ["lowest", "2nd", "3rd", "highest"])
         right.set_xlabel("quarter of the candidate's score within its decision")
         right.set_ylabel("episode success after it")

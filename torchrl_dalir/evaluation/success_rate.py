@@ -25,7 +25,8 @@ class EpisodeRecord:
     """One evaluation episode: its index, reset seed, outcome, length and return.
 
     Example:
-        >>> record = EpisodeRecord(episode=0, reset_seed=eval_episode_seed(0, 0), success=True, steps=42, episode_return=3.5)
+        >>> record = EpisodeRecord(episode=0, reset_seed=eval_episode_seed(0, 0), success=True, steps=42,
+        ...                        episode_return=3.5)
         >>> record.reset_seed  # episode 0 under evaluation seed 0: the same episode for every policy
         1000000000
     """
@@ -43,7 +44,8 @@ class EvaluationResult:
     """What :func:`evaluate` returns: the task and one :class:`EpisodeRecord` per episode.
 
     Example:
-        >>> result = EvaluationResult("reach", [EpisodeRecord(0, 1000000000, True, 42, 3.5), EpisodeRecord(1, 1000000001, False, 200, 0.7)])
+        >>> result = EvaluationResult("reach", [EpisodeRecord(0, 1000000000, True, 42, 3.5),
+        ...                                     EpisodeRecord(1, 1000000001, False, 200, 0.7)])
         >>> result.success_rate, result.to_dict()["episodes"][1]["steps"]
         (0.5, 200)
     """

@@ -44,13 +44,18 @@ class GifLogger(Logger):
     def _create_experiment(self) -> None:
         return None
 
-    def log_video(self, name: str, video: torch.Tensor, step: int | None = None, fps: int | None = None, **kwargs) -> None:
+    def log_video(
+        self, name: str, video: torch.Tensor, step: int | None = None, fps: int | None = None, **kwargs
+    ) -> None:
         """Writes ``video`` ``[T, C, H, W]`` or ``[N, T, C, H, W]`` (``N`` videos side by side),
         uint8 with ``C`` 1 or 3, as one GIF."""
         if video.dim() == 5:
             video = torch.cat(list(video), dim=-1)
         if video.dim() != 4 or video.shape[1] not in (1, 3) or video.dtype != torch.uint8:
-            raise ValueError(f"a video must be uint8 [T, C, H, W] or [N, T, C, H, W] with C 1 or 3, got {video.dtype} {tuple(video.shape)}")
+            raise ValueError(
+                "a video must be uint8 [T, C, H, W] or [N, T, C, H, W] with C 1 or 3, "
+                f"got {video.dtype} {tuple(video.shape)}"
+            )
         frames = [Image.fromarray(frame.numpy()) for frame in video.expand(-1, 3, -1, -1).permute(0, 2, 3, 1).cpu()]
         path = Path(self.log_dir) / (f"{name}.gif" if step is None else f"{name}_{step}.gif")
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -78,7 +83,8 @@ def gif_recorder(log_dir: str | Path, tag: str, in_key=keys.PIXELS, fps: int = V
     Example:
         >>> from torchrl.envs import TransformedEnv
         >>> from torchrl_dalir import make_env
-        >>> env = TransformedEnv(make_env("reach", pixels=VIDEO_SIZE), gif_recorder("videos", "reach"))  # doctest: +SKIP
+        >>> recorder = gif_recorder("videos", "reach")  # doctest: +SKIP
+        >>> env = TransformedEnv(make_env("reach", pixels=VIDEO_SIZE), recorder)  # doctest: +SKIP
         >>> env.rollout(20)  # doctest: +SKIP
         >>> env.transform.dump(step=0)  # writes videos/reach_0.gif  # doctest: +SKIP
     """

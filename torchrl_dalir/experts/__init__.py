@@ -23,9 +23,13 @@ def make_expert(task: str | TaskSpec) -> TensorDictModule:
     if spec.suite == ADROIT:
         experts = {"door": DoorScriptedPolicy, "pen": PenExpertPolicy.load}
         if spec.name not in experts:
-            raise NotImplementedError(f"no expert for the Adroit task {spec.name!r}; Adroit experts exist for {sorted(experts)}")
+            raise NotImplementedError(
+                f"no expert for the Adroit task {spec.name!r}; Adroit experts exist for {sorted(experts)}"
+            )
         return TensorDictModule(experts[spec.name](), in_keys=[keys.PRIVILEGED_STATE], out_keys=[keys.ACTION])
-    return TensorDictModule(MetaWorldScriptedPolicy(spec.env_id), in_keys=[keys.PRIVILEGED_STATE], out_keys=[keys.ACTION])
+    return TensorDictModule(
+        MetaWorldScriptedPolicy(spec.env_id), in_keys=[keys.PRIVILEGED_STATE], out_keys=[keys.ACTION]
+    )
 
 
 __all__ = ["DoorScriptedPolicy", "DriftNoise", "PenExpertPolicy", "add_drift_noise", "make_expert"]

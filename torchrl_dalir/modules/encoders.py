@@ -35,13 +35,19 @@ def masked_max(features: torch.Tensor, keep: torch.Tensor, top: int = 8) -> torc
     values, index = features.topk(top, dim=-2)  # [..., top, C], largest first
     # [..., C, top]: whether the point of each of a channel's top values is kept, the top values
     # contiguous (a reduction over a strided dimension of 8 was the slowest step here)
-    kept = keep.unsqueeze(-2).expand(*batch, channels, points).gather(-1, index.transpose(-1, -2).expand(*batch, channels, top))
+    kept = (
+        keep.unsqueeze(-2)
+        .expand(*batch, channels, points)
+        .gather(-1, index.transpose(-1, -2).expand(*batch, channels, top))
+    )
     first = kept.to(torch.uint8).argmax(-1, keepdim=True)  # the first kept one (argmax returns the first maximum)
     out = values.transpose(-1, -2).expand(*batch, channels, top).gather(-1, first).squeeze(-1)
     missing = ~kept.any(-1)  # [..., C]: none of the top values is kept
     if missing.any():
         rows = missing.any(-1)
-        masked = features.expand(*batch, points, channels)[rows].masked_fill(~keep.expand(*batch, points)[rows].unsqueeze(-1), float("-inf"))
+        masked = features.expand(*batch, points, channels)[rows].masked_fill(
+            ~keep.expand(*batch, points)[rows].unsqueeze(-1), float("-inf")
+        )
         out[rows] = torch.where(missing[rows], masked.max(-2).values, out[rows])
     return out
 

@@ -39,7 +39,9 @@ def check_values(value: torch.Tensor, key: NestedKey) -> None:
         raise ValueError(f"{_name(key)} {tuple(value.shape)} is {value.dtype}: pass floating-point values (float32)")
     if not torch.isfinite(value).all():
         bad = int((~torch.isfinite(value)).sum())
-        raise ValueError(f"{_name(key)} {tuple(value.shape)} holds {bad} NaN or infinite values: check the observation's source")
+        raise ValueError(
+            f"{_name(key)} {tuple(value.shape)} holds {bad} NaN or infinite values: check the observation's source"
+        )
 
 
 def check_finite_output(value: torch.Tensor, what: str, cause: str) -> None:
@@ -80,7 +82,8 @@ class ChunkPolicy3D(TensorDictModuleBase):
     Example:
         >>> from tensordict import TensorDict
         >>> from torchrl_dalir.modules import PolicyConfig, make_policy
-        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]),
+        ...                      action_dim=4, state_dim=4)
         >>> isinstance(policy, ChunkPolicy3D), policy.in_keys, policy.out_keys
         (True, ['point_cloud', 'agent_pos'], ['action_chunk'])
         >>> policy.reset(seed=0)  # its own noise stream: the same observation, the same chunk
@@ -107,8 +110,10 @@ class ChunkPolicy3D(TensorDictModuleBase):
     ):
         super().__init__()
         if config.flow_prediction not in FLOW_PREDICTIONS:  # "task": a training configuration resolves it for its task
-            raise ValueError(f"flow_prediction={config.flow_prediction!r} names no target; build the policy from a "
-                             f"resolved configuration (PolicyTrainingConfig.resolved()) or choose one of {FLOW_PREDICTIONS}")
+            raise ValueError(
+                f"flow_prediction={config.flow_prediction!r} names no target; build the policy from a "
+                f"resolved configuration (PolicyTrainingConfig.resolved()) or choose one of {FLOW_PREDICTIONS}"
+            )
         self.in_keys, self.out_keys = list(in_keys), list(out_keys)
         self.config = config
         self.action_dim, self.state_dim = action_dim, state_dim
@@ -119,7 +124,9 @@ class ChunkPolicy3D(TensorDictModuleBase):
         # the bounds the env clips actions to (unbounded until set_action_bounds); not saved, they are the env's
         self.register_buffer("action_low", torch.full((action_dim,), -torch.inf), persistent=False)
         self.register_buffer("action_high", torch.full((action_dim,), torch.inf), persistent=False)
-        self.generator: torch.Generator | None = None  # the sampling noise's own stream (see reset); None: torch's global one
+        self.generator: torch.Generator | None = (
+            None  # the sampling noise's own stream (see reset); None: torch's global one
+        )
         self.seed: int | None = None
         self.point_encoder = PointCloudEncoder(tuple(config.point_hidden), config.point_out)
         self.state_encoder = StateEncoder(state_dim, out_dim=config.state_out)
@@ -156,7 +163,9 @@ class ChunkPolicy3D(TensorDictModuleBase):
         a chunk, and what a world model imagines from it, is what the simulator will execute."""
         low, high = torch.as_tensor(low, dtype=torch.float32), torch.as_tensor(high, dtype=torch.float32)
         if low.shape != (self.action_dim,) or high.shape != (self.action_dim,) or not (low <= high).all():
-            raise ValueError(f"action bounds must be two [{self.action_dim}] tensors with low <= high, got {low} and {high}")
+            raise ValueError(
+                f"action bounds must be two [{self.action_dim}] tensors with low <= high, got {low} and {high}"
+            )
         self.action_low.copy_(low)
         self.action_high.copy_(high)
 
@@ -187,11 +196,13 @@ class ChunkPolicy3D(TensorDictModuleBase):
             )
         if agent_pos.shape[-2:] != (to, self.state_dim):
             raise ValueError(
-                f"{_name(state_key)} must be [..., {to}, {self.state_dim}] (the policy's {self.state_dim}-D robot state, "
-                f"a {to}-step history), got {tuple(agent_pos.shape)}"
+                f"{_name(state_key)} must be [..., {to}, {self.state_dim}] "
+                f"(the policy's {self.state_dim}-D robot state, a {to}-step history), got {tuple(agent_pos.shape)}"
             )
         if point_cloud.shape[:-3].numel() == 0:
-            raise ValueError(f"no observation to act on: {_name(cloud_key)} is {tuple(point_cloud.shape)}, an empty batch")
+            raise ValueError(
+                f"no observation to act on: {_name(cloud_key)} is {tuple(point_cloud.shape)}, an empty batch"
+            )
         check_point_cloud(point_cloud, cloud_key)
         check_values(agent_pos, state_key)
         dtype = self.point_normalizer.low.dtype
@@ -200,13 +211,15 @@ class ChunkPolicy3D(TensorDictModuleBase):
         if excess > MAX_NORMALIZED_MAGNITUDE:
             low, high = self.point_normalizer.low.tolist(), self.point_normalizer.high.tolist()
             raise ValueError(
-                f"{_name(cloud_key)} {tuple(point_cloud.shape)} lies far outside the points the policy was trained on: up to "
-                f"{excess:.3g} where they span [-1, 1] after normalisation (xyz from {low} to {high}). Pass world-frame "
-                "coordinates in metres, as make_env gives them"
+                f"{_name(cloud_key)} {tuple(point_cloud.shape)} lies far outside the points the policy was trained on: "
+                f"up to {excess:.3g} where they span [-1, 1] after normalisation (xyz from {low} to {high}). "
+                "Pass world-frame coordinates in metres, as make_env gives them"
             )
         return point_cloud, agent_pos
 
-    def read_observation(self, tensordict: TensorDictBase, in_keys: Sequence[NestedKey] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def read_observation(
+        self, tensordict: TensorDictBase, in_keys: Sequence[NestedKey] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The point cloud and robot state an actor reads from ``tensordict`` (at ``in_keys``, by default the
         policy's), refused unless they are what the policy acts on (:meth:`check_observation`): a history of
         ``obs_steps`` frames for every batch entry, and the cloud size it was trained on."""
@@ -216,12 +229,14 @@ class ChunkPolicy3D(TensorDictModuleBase):
         to = self.config.obs_steps
         if cloud.dim() - 3 < tensordict.batch_dims:
             raise ValueError(
-                f"{_name(in_keys[0])} is {tuple(cloud.shape)} in a tensordict of batch size {list(tensordict.batch_size)}: it "
-                f"must be [*batch, {to}, N, 3], a {to}-step history (torchrl_dalir.envs.make_env(..., history={to}))"
+                f"{_name(in_keys[0])} is {tuple(cloud.shape)} in a tensordict of batch size "
+                f"{list(tensordict.batch_size)}: it must be [*batch, {to}, N, 3], a {to}-step history "
+                f"(torchrl_dalir.envs.make_env(..., history={to}))"
             )
         if self.num_points is not None and cloud.shape[-2] != self.num_points:
             raise ValueError(
-                f"the policy was trained on {self.num_points}-point clouds; the observation has {cloud.shape[-2]} points "
+                f"the policy was trained on {self.num_points}-point clouds; "
+                f"the observation has {cloud.shape[-2]} points "
                 f"(torchrl_dalir.envs.make_env(..., num_points={self.num_points}))"
             )
         return cloud, agent_pos
@@ -230,14 +245,18 @@ class ChunkPolicy3D(TensorDictModuleBase):
         """Per-point features of normalised clouds ``[..., To, N, 3]`` -> ``[..., To, N, C]``."""
         return self.point_encoder.point_features(self.point_normalizer(point_cloud))
 
-    def condition(self, features: torch.Tensor, agent_pos: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+    def condition(
+        self, features: torch.Tensor, agent_pos: torch.Tensor, keep: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Pools per-point features (under an optional keep mask ``[..., To, N]``) and appends the
         state features: the U-Net's condition ``[..., To * (point_out + state_out)]``."""
         pooled = self.point_encoder.pool(features, keep)
         state = self.state_encoder(self.state_normalizer(agent_pos))
         return torch.cat([pooled, state], dim=-1).flatten(-2)
 
-    def encode(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+    def encode(
+        self, point_cloud: torch.Tensor, agent_pos: torch.Tensor, keep: torch.Tensor | None = None
+    ) -> torch.Tensor:
         point_cloud, agent_pos = self.check_observation(point_cloud, agent_pos)
         return self.condition(self.point_features(point_cloud), agent_pos, keep)
 
@@ -246,7 +265,9 @@ class ChunkPolicy3D(TensorDictModuleBase):
         """Turns noise ``[B, H, A]`` into a normalised chunk, conditioned on ``cond`` ``[B, C]``."""
         raise NotImplementedError
 
-    def sample(self, cond: torch.Tensor, generator: torch.Generator | None = None, noise: torch.Tensor | None = None) -> torch.Tensor:
+    def sample(
+        self, cond: torch.Tensor, generator: torch.Generator | None = None, noise: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Chunks ``[..., H, A]`` in env units within the action bounds, one per condition ``[..., C]``; batch
         many conditions (e.g. 32 candidates) into one call. The noise comes from ``generator``, by default the
         policy's own (see :meth:`reset`)."""
@@ -255,10 +276,14 @@ class ChunkPolicy3D(TensorDictModuleBase):
         flat = cond.reshape(-1, cond.shape[-1])
         shape = (flat.shape[0], self.config.horizon, self.action_dim)
         if noise is None:
-            noise = torch.randn(shape, generator=generator, device=cond.device if generator is None else generator.device)
+            noise = torch.randn(
+                shape, generator=generator, device=cond.device if generator is None else generator.device
+            )
             noise = noise.to(cond.device)
         elif noise.shape != (*batch_shape, *shape[1:]):
-            raise ValueError(f"noise must be {(*batch_shape, *shape[1:])} (one chunk per condition), got {tuple(noise.shape)}")
+            raise ValueError(
+                f"noise must be {(*batch_shape, *shape[1:])} (one chunk per condition), got {tuple(noise.shape)}"
+            )
         chunk = self.generate(flat, noise.reshape(shape).to(cond.dtype))
         chunk = self.action_normalizer.unnormalize(chunk).clamp(self.action_low, self.action_high)
         if not torch.isfinite(chunk).all():
@@ -268,11 +293,15 @@ class ChunkPolicy3D(TensorDictModuleBase):
     def _overflow_cause(self) -> str:
         """Why sampled chunks are not finite: damaged weights, or an observation that overflowed the network."""
         if not all(value.isfinite().all() for value in self.state_dict().values() if value.is_floating_point()):
-            return ("the policy's weights or normalizers hold NaN or infinite values (a damaged checkpoint, or a training that "
-                    "diverged): load another checkpoint or train it again")
-        return ("an observation far outside what the policy was trained on overflowed the network: most likely its robot "
-                "state (agent_pos, whose range is not checked, unlike the cloud's), e.g. in other units than the env's; pass "
-                "observations as make_env gives them")
+            return (
+                "the policy's weights or normalizers hold NaN or infinite values "
+                "(a damaged checkpoint, or a training that diverged): load another checkpoint or train it again"
+            )
+        return (
+            "an observation far outside what the policy was trained on overflowed the network: most likely its "
+            "robot state (agent_pos, whose range is not checked, unlike the cloud's), e.g. in other units than "
+            "the env's; pass observations as make_env gives them"
+        )
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase, generator: torch.Generator | None = None) -> TensorDictBase:

@@ -77,8 +77,16 @@ class RecedingHorizonActor(MultiStepActorWrapper):
     an actor object serves one ``ParallelEnv`` at a time. An un-batched env acts as a batch of one.
     """
 
-    def __init__(self, actor: TensorDictModuleBase, obs_steps: int, action_steps: int, decision_keys: Sequence[NestedKey],
-                 chunk_key: NestedKey, action_key: NestedKey, init_key: NestedKey):
+    def __init__(
+        self,
+        actor: TensorDictModuleBase,
+        obs_steps: int,
+        action_steps: int,
+        decision_keys: Sequence[NestedKey],
+        chunk_key: NestedKey,
+        action_key: NestedKey,
+        init_key: NestedKey,
+    ):
         decision_keys = list(decision_keys)
         modules = [actor, ExecutedActions(obs_steps, action_steps, chunk_key)]
         if decision_keys:
@@ -109,7 +117,9 @@ class RecedingHorizonActor(MultiStepActorWrapper):
         if restart is not None:
             restart(seed)
         elif seed is not None:
-            raise ValueError(f"{type(self.chunk_actor).__name__} has no random stream of its own to seed: use torch.manual_seed")
+            raise ValueError(
+                f"{type(self.chunk_actor).__name__} has no random stream of its own to seed: use torch.manual_seed"
+            )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if tensordict.batch_dims == 0:  # an un-batched env: act as a batch of one
@@ -124,7 +134,10 @@ class RecedingHorizonActor(MultiStepActorWrapper):
         replan = is_init.reshape(tensordict.shape)
         try:  # TorchRL's way: the tensordict carries the plan and the counter
             carried = tensordict.select(*self.chunk_keys, self.counter_key)
-            self._plan, self._counter = carried.exclude(self.counter_key), carried.get(self.counter_key).reshape(tensordict.shape)
+            self._plan, self._counter = (
+                carried.exclude(self.counter_key),
+                carried.get(self.counter_key).reshape(tensordict.shape),
+            )
         except KeyError:  # dropped (ParallelEnv) or not there yet: the plans last written stand in
             pass
         if self._plan is None or self._plan.batch_size != tensordict.shape:
@@ -180,8 +193,9 @@ def receding_horizon(
 
     ``obs_steps`` and ``action_steps`` default to those of the policy that ``chunk_policy`` is or
     wraps (a base policy or any :class:`~torchrl_dalir.modules.ChunkPolicy`,
-    :class:`~torchrl_dalir.reranking.RerankingActor`); other values are refused. ``decision_keys``: other outputs of ``chunk_policy`` to keep (default: all of its
-    ``out_keys`` but ``chunk_key``, e.g. DALI-R's candidate scores and choice); every step then
+    :class:`~torchrl_dalir.reranking.RerankingActor`); other values are refused. ``decision_keys``:
+    other outputs of ``chunk_policy`` to keep (default: all of its ``out_keys`` but ``chunk_key``,
+    e.g. DALI-R's candidate scores and choice); every step then
     carries the value of the decision its action came from. With ``env``, an env that the policy
     was not trained for (another task, history, cloud size or state size) is refused here;
     without it, a wrong observation is refused at the first decision.
@@ -194,8 +208,10 @@ def receding_horizon(
         given = {"obs_steps": obs_steps, "action_steps": action_steps}
         for name, value in given.items():
             if value is not None and value != getattr(policy, name):
-                raise ValueError(f"{name}={value}, but the policy was trained with {name}={getattr(policy, name)} "
-                                 "(leave it out: the policy's own is used)")
+                raise ValueError(
+                    f"{name}={value}, but the policy was trained with {name}={getattr(policy, name)} "
+                    "(leave it out: the policy's own is used)"
+                )
         obs_steps, action_steps = policy.obs_steps, policy.action_steps
     if decision_keys is None:
         decision_keys = [key for key in chunk_policy.out_keys if key != unravel_key(chunk_key)]

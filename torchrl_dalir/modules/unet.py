@@ -103,7 +103,9 @@ class ConditionalUnet1D(nn.Module):
         for n_in, n_out in reversed(levels[1:]):  # every up level undoes one downsampling
             upsample = nn.ConvTranspose1d(n_in, n_in, 4, stride=2, padding=1)
             self.up.append(nn.ModuleList([block(2 * n_out, n_in), block(n_in, n_in), upsample]))
-        self.head = nn.Sequential(ConvBlock(down_dims[0], down_dims[0], kernel_size, groups), nn.Conv1d(down_dims[0], action_dim, 1))
+        self.head = nn.Sequential(
+            ConvBlock(down_dims[0], down_dims[0], kernel_size, groups), nn.Conv1d(down_dims[0], action_dim, 1)
+        )
         self.min_length = 2 ** (len(down_dims) - 1)
 
     def forward(self, chunk: torch.Tensor, step: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:

@@ -50,7 +50,8 @@ class LatentEncoder(nn.Module):
 
     Example:
         >>> from torchrl_dalir.modules import PolicyConfig, make_policy
-        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]),
+        ...                      action_dim=4, state_dim=4)
         >>> encoder = LatentEncoder.from_policy(policy)  # a trainable copy of the policy's encoders
         >>> encoder.latent_dim, encoder(torch.rand(5, 64, 3), torch.rand(5, 4)).shape
         (128, torch.Size([5, 128]))
@@ -70,24 +71,43 @@ class LatentEncoder(nn.Module):
         policy needs DP3's (:data:`POLICY_ENCODERS`), as :class:`~torchrl_dalir.modules.ChunkPolicy3D` has."""
         missing = [name for name in POLICY_ENCODERS if not hasattr(policy, name)]
         if missing:
-            raise ValueError(f"{type(policy).__name__} has no {', '.join(missing)} to copy: build a new latent encoder with "
-                             "LatentEncoder.fresh(state_dim) and train it with the scorer (train_world_model(..., encoder=finetune) does)")
+            raise ValueError(
+                f"{type(policy).__name__} has no {', '.join(missing)} to copy: build a new latent encoder with "
+                "LatentEncoder.fresh(state_dim) and train it with the scorer "
+                "(train_world_model(..., encoder=finetune) does)"
+            )
         parts = [getattr(policy, name) for name in POLICY_ENCODERS]
         encoder = cls(*(copy.deepcopy(p) for p in parts))
         encoder.requires_grad_(True)
         return encoder
 
     @classmethod
-    def fresh(cls, state_dim: int, point_hidden=(64, 128, 256), point_out: int = 64, state_hidden: int = 64, state_out: int = 64) -> LatentEncoder:
+    def fresh(
+        cls,
+        state_dim: int,
+        point_hidden=(64, 128, 256),
+        point_out: int = 64,
+        state_hidden: int = 64,
+        state_out: int = 64,
+    ) -> LatentEncoder:
         """A new, trainable encoder of DP3's architecture (by default its sizes) for ``state_dim``-D robot
         states; its normalizers are the identity until fitted (:meth:`fit_normalizers`)."""
-        return cls(MinMaxNormalizer(3), PointCloudEncoder(tuple(point_hidden), point_out), MinMaxNormalizer(state_dim),
-                   StateEncoder(state_dim, state_hidden, state_out))
+        return cls(
+            MinMaxNormalizer(3),
+            PointCloudEncoder(tuple(point_hidden), point_out),
+            MinMaxNormalizer(state_dim),
+            StateEncoder(state_dim, state_hidden, state_out),
+        )
 
     def architecture(self) -> dict:
         """The sizes that :meth:`fresh` rebuilds this encoder's modules from (stored in world-model checkpoints)."""
-        return {"state_dim": self.state_encoder.state_dim, "point_hidden": list(self.point_encoder.hidden),
-                "point_out": self.point_encoder.out_dim, "state_hidden": self.state_encoder.hidden, "state_out": self.state_encoder.out_dim}
+        return {
+            "state_dim": self.state_encoder.state_dim,
+            "point_hidden": list(self.point_encoder.hidden),
+            "point_out": self.point_encoder.out_dim,
+            "state_hidden": self.state_encoder.hidden,
+            "state_out": self.state_encoder.out_dim,
+        }
 
     def fit_normalizers(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> LatentEncoder:
         """Fits the point and state normalizers on observations (any leading shape)."""
@@ -132,8 +152,16 @@ class LatentWorldModel(nn.Module):
         torch.Size([5, 128])
     """
 
-    def __init__(self, latent_dim: int, action_dim: int, action_steps: int = 8, hidden: int = 256, layers: int = 3, heads: int = 4,
-                 action_input: bool = True):
+    def __init__(
+        self,
+        latent_dim: int,
+        action_dim: int,
+        action_steps: int = 8,
+        hidden: int = 256,
+        layers: int = 3,
+        heads: int = 4,
+        action_input: bool = True,
+    ):
         super().__init__()
         self.latent_dim, self.action_dim, self.action_steps = latent_dim, action_dim, action_steps
         self.action_input = action_input
@@ -151,7 +179,9 @@ class LatentWorldModel(nn.Module):
     def forward(self, latent: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """The residual ``W(s_t, a)`` for latents ``[..., L]`` and chunks ``[..., k, A]``."""
         if actions.shape[-2:] != (self.action_steps, self.action_dim):
-            raise ValueError(f"action chunks must be [..., {self.action_steps}, {self.action_dim}], got {tuple(actions.shape)}")
+            raise ValueError(
+                f"action chunks must be [..., {self.action_steps}, {self.action_dim}], got {tuple(actions.shape)}"
+            )
         batch = latent.shape[:-1]
         action_tokens = self.action_in(self.action_normalizer(actions))
         if not self.action_input:
@@ -221,7 +251,9 @@ class ScorerEnsemble(nn.Module):
         super().__init__()
         if members < 1:
             raise ValueError(f"an ensemble needs at least one member, got {members}")
-        member = TensorDictModule(TaskCompletionScorer(latent_dim, hidden), in_keys=[self.LATENT_KEY], out_keys=[self.LOGIT_KEY])
+        member = TensorDictModule(
+            TaskCompletionScorer(latent_dim, hidden), in_keys=[self.LATENT_KEY], out_keys=[self.LOGIT_KEY]
+        )
         self.ensemble = _EnsembleModule(member, members, expand_input=False)
         self.ensemble.module.requires_grad_(False)  # the template: only the stacked copies are used
         self.latent_dim, self.members = latent_dim, members
@@ -230,7 +262,10 @@ class ScorerEnsemble(nn.Module):
         """Logits ``[E, ...]``: of every member on latents ``[..., L]``, or (``per_member``) of
         member ``e`` on ``latent[e]`` for latents ``[E, ..., L]``."""
         if latent.shape[-1] != self.latent_dim or (per_member and latent.shape[0] != self.members):
-            raise ValueError(f"expected latents [{self.members if per_member else '...'}, ..., {self.latent_dim}], got {tuple(latent.shape)}")
+            raise ValueError(
+                f"expected latents [{self.members if per_member else '...'}, ..., {self.latent_dim}], "
+                f"got {tuple(latent.shape)}"
+            )
         if not per_member:
             latent = latent.expand(self.members, *latent.shape)
         inputs = TensorDict({self.LATENT_KEY: latent}, batch_size=latent.shape[:-1])
@@ -250,12 +285,24 @@ class _TensorModule(TensorDictModule):
     DEFAULT_OUT_KEYS: tuple[NestedKey, ...] = ()
     METHOD: str | None = None  # None: the module's forward
 
-    def __init__(self, module: nn.Module, *, in_keys: Sequence[NestedKey] | None = None, out_keys: Sequence[NestedKey] | None = None):
+    def __init__(
+        self,
+        module: nn.Module,
+        *,
+        in_keys: Sequence[NestedKey] | None = None,
+        out_keys: Sequence[NestedKey] | None = None,
+    ):
         in_keys = list(in_keys if in_keys is not None else self.DEFAULT_IN_KEYS)
         out_keys = list(out_keys if out_keys is not None else self.DEFAULT_OUT_KEYS)
-        for name, given, expected in (("in_keys", in_keys, self.DEFAULT_IN_KEYS), ("out_keys", out_keys, self.DEFAULT_OUT_KEYS)):
+        for name, given, expected in (
+            ("in_keys", in_keys, self.DEFAULT_IN_KEYS),
+            ("out_keys", out_keys, self.DEFAULT_OUT_KEYS),
+        ):
             if len(given) != len(expected):
-                raise ValueError(f"{type(self).__name__} takes {len(expected)} {name} (like the default {list(expected)}), got {given}")
+                raise ValueError(
+                    f"{type(self).__name__} takes {len(expected)} {name} (like the default {list(expected)}), "
+                    f"got {given}"
+                )
         super().__init__(module, in_keys=in_keys, out_keys=out_keys, method=self.METHOD)
 
 
@@ -270,7 +317,8 @@ class LatentEncoderModule(_TensorModule):
 
     Example:
         >>> from torchrl_dalir.modules import PolicyConfig, make_policy
-        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]),
+        ...                      action_dim=4, state_dim=4)
         >>> module = LatentEncoderModule(LatentEncoder.from_policy(policy))
         >>> td = TensorDict({"point_cloud": torch.rand(5, 64, 3), "agent_pos": torch.rand(5, 4)}, [5])
         >>> module(td)["latent"].shape

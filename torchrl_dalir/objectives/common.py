@@ -21,8 +21,9 @@ class KeyedLossModule(LossModule):
 
     ``loss.set_keys(<name>=<nested key>)`` then renames an input (TorchRL refuses a name the
     dataclass lacks; ``None`` restores the default) and :attr:`in_keys` follows: the entries the
-    loss reads under their current names, in the dataclass's order. A subclass whose configuration skips some of its keys
-    overrides :meth:`_read_key_names`. There is no value estimator to forward keys to.
+    loss reads under their current names, in the dataclass's order. A subclass whose configuration
+    skips some of its keys overrides :meth:`_read_key_names`. There is no value estimator to forward
+    keys to.
 
     Example:
         >>> import torch

@@ -45,7 +45,14 @@ class ConsistencyFlowMatchingLoss(ChunkGenerationLoss):
     out_keys = ["loss_consistency"]
     policy: FlowMatchingPolicy3D
 
-    def __init__(self, policy: FlowMatchingPolicy3D, delta: float = 0.01, segments: int = 2, alpha: float = 1e-5, eps: float = 1e-3):
+    def __init__(
+        self,
+        policy: FlowMatchingPolicy3D,
+        delta: float = 0.01,
+        segments: int = 2,
+        alpha: float = 1e-5,
+        eps: float = 1e-3,
+    ):
         super().__init__(policy)
         self.delta, self.segments, self.alpha, self.eps = delta, segments, alpha, eps
 

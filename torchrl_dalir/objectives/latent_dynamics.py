@@ -65,5 +65,7 @@ class LatentDynamicsLoss(KeyedLossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         latent, actions = tensordict[self.tensor_keys.latent], tensordict[self.tensor_keys.action_chunk]
-        loss = torch.nn.functional.mse_loss(self.world_model.imagine(latent, actions), tensordict[self.tensor_keys.future_latent])
+        loss = torch.nn.functional.mse_loss(
+            self.world_model.imagine(latent, actions), tensordict[self.tensor_keys.future_latent]
+        )
         return TensorDict({"loss_latent_dynamics": loss}, [])

@@ -39,7 +39,8 @@ class TaskCompletionLoss(KeyedLossModule):
         ...                    "completion_target": torch.rand(6)}, [6])
         >>> loss(rows)["loss_task_completion"].shape
         torch.Size([])
-        >>> frozen = TaskCompletionLoss(None, TaskCompletionScorer(encoder.latent_dim), target_key="dense_reward_target")
+        >>> frozen = TaskCompletionLoss(None, TaskCompletionScorer(encoder.latent_dim),
+        ...                             target_key="dense_reward_target")
         >>> frozen.in_keys
         ['latent', 'dense_reward_target']
         >>> table = TensorDict({"latent": encoder(rows["point_cloud"], rows["agent_pos"]).detach(),
@@ -68,7 +69,9 @@ class TaskCompletionLoss(KeyedLossModule):
     tensor_keys: _AcceptedKeys
     out_keys = ["loss_task_completion"]
 
-    def __init__(self, encoder: LatentEncoder | None, scorer: TaskCompletionScorer, target_key: NestedKey | None = None):
+    def __init__(
+        self, encoder: LatentEncoder | None, scorer: TaskCompletionScorer, target_key: NestedKey | None = None
+    ):
         super().__init__()
         self.encoder, self.scorer = encoder, scorer
         if target_key is not None:

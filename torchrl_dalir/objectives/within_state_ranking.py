@@ -32,6 +32,7 @@ class WithinStateRankingLoss(KeyedLossModule):
     Keys (``set_keys``): ``features`` ``[B, K, F]`` and ``success`` ``[B, K]``.
 
     Example:
+        >>> import torch
         >>> from torchrl_dalir.modules import TaskCompletionScorer
         >>> loss = WithinStateRankingLoss(TaskCompletionScorer(6, hidden=16))
         >>> decisions = TensorDict({"candidate_features": torch.randn(4, 8, 6),

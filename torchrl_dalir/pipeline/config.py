@@ -29,7 +29,8 @@ from torchrl_dalir.training.world_model import WorldModelTrainingConfig
 # The job's setting that each derived stage setting comes from (the others share their name).
 DERIVED_FROM = {"data": "out", "mixed_name": "policy and seed", "policy_checkpoint": "out, policy and seed"}
 
-STAGES = ("demos", "policy", "mixed", "exploration", "world_model", "calibration", "evaluation")
+STAGES = ("demos", "policy", "mixed", "exploration", "branched", "world_model", "calibration", "evaluation")
+BRANCHED_SEED_BASE = 10_000_000  # branched episodes of training seed s reset with data seeds BASE + 1000 s + i
 STAGE_LOG = "stages"  # under out: <task>/<run name>.jsonl, a line per finished stage (wall time, peak memory)
 
 
@@ -44,6 +45,12 @@ class PipelineConfig:
     exploration_rollouts: trajectories of the base policy acting on point-dropout views (one of
         DALI-R's candidates at random per decision), collected as ``explore_<policy>_seed<seed>``
         and added to the world model's data (0: none, the paper's data; the ``cpu`` preset: 60).
+    branched_episodes, branched_stride, branched_candidates: branched outcomes
+        (:mod:`~torchrl_dalir.data.branched`): at every ``branched_stride``-th decision of
+        ``branched_episodes`` base-policy episodes on data seeds, ``branched_candidates`` of DALI-R's
+        candidates are each executed from the saved state and continued with the base policy, in
+        ``<out>/data/<task>/branched_<policy>_seed<seed>``, with the within-decision AUC of a scorer
+        trained on them (``ranking.json`` there). 0 episodes (the default): no branched outcomes.
     eval_episodes, eval_seed: the test episodes, shared by every method (``eval_methods``: the
         base policy, DALI-R with the calibrated rule, with the paper's arg-max, and the
         random-candidate control; ``dropout`` adds the point-dropout policy; see
@@ -86,6 +93,9 @@ class PipelineConfig:
     policy: str = "fm"
     base_policy_rollouts: int = 100
     exploration_rollouts: int = 0
+    branched_episodes: int = 0
+    branched_stride: int = 3
+    branched_candidates: int = 8
     eval_episodes: int = 50
     eval_seed: int = 0
     eval_methods: list[str] = field(default_factory=lambda: ["base", "dalir", "argmax", "random"])
@@ -93,7 +103,9 @@ class PipelineConfig:
     calibration_seed: int = 1
     calibration_alpha: float = ALPHA
     calibration_confirm_episodes: int = 0
-    calibration_grid: str = "argmax"  # argmax (base policy or ensemble arg-max) | all (the margin settings and the other rules) | margin (the margin settings only)
+    # argmax (base policy or ensemble arg-max) | all (the margin settings and the other rules)
+    # | margin (the margin settings only)
+    calibration_grid: str = "argmax"
     calibration_design: str = "fixed"  # fixed | failures (sized by the base policy's failures)
     calibration_failures: int = FAILURES
     num_candidates: int = RerankingConfig.num_candidates
@@ -116,20 +128,44 @@ class PipelineConfig:
         if not 0 < self.calibration_alpha <= 1:
             raise ValueError(f"calibration_alpha is a p-value threshold in (0, 1], got {self.calibration_alpha}")
         check_evaluation_settings(self.eval_episodes, self.eval_seed, self.num_candidates, self.dropout, prefix="eval_")
+        check_at_least("branched_stride", self.branched_stride, 1)
+        check_at_least("branched_candidates", self.branched_candidates, 2)
         check_eval_seed(self.calibration_seed, "calibration_seed")
-        for name in ("calibration_episodes", "calibration_confirm_episodes", "base_policy_rollouts", "exploration_rollouts", "seed", "demo_seed"):
+        for name in (
+            "calibration_episodes",
+            "calibration_confirm_episodes",
+            "base_policy_rollouts",
+            "exploration_rollouts",
+            "branched_episodes",
+            "seed",
+            "demo_seed",
+        ):
             check_at_least(name, getattr(self, name), 0)
         confirms = self.calibration_confirm_episodes or self.calibration_design == "failures"
         if self.calibration_episodes and confirms and self.calibration_seed + 1 == self.eval_seed:
-            raise ValueError(f"the confirmation's validation episodes (evaluation seed calibration_seed + 1 = {self.eval_seed}) "
-                             "would be the test episodes: choose another calibration_seed")
+            raise ValueError(
+                f"the confirmation's validation episodes (evaluation seed calibration_seed + 1 = {self.eval_seed}) "
+                "would be the test episodes: choose another calibration_seed"
+            )
         alternatives = len(GRIDS[self.calibration_grid]) - 1  # the first entry is the base policy
-        if self.calibration_episodes and self.calibration_design == "fixed" and not self.calibration_confirm_episodes and alternatives > 1:
-            warnings.warn(f"calibration_grid={self.calibration_grid} compares {alternatives} settings with the base policy on the "
-                          "same episodes: the best of them clears the sign-test bar by luck more often than calibration_alpha says; "
-                          f"set calibration_confirm_episodes={self.calibration_episodes}", stacklevel=2)
+        if (
+            self.calibration_episodes
+            and self.calibration_design == "fixed"
+            and not self.calibration_confirm_episodes
+            and alternatives > 1
+        ):
+            warnings.warn(
+                f"calibration_grid={self.calibration_grid} compares {alternatives} settings with the base policy "
+                "on the same episodes: the best of them clears the sign-test bar by luck more often than "
+                "calibration_alpha says; "
+                f"set calibration_confirm_episodes={self.calibration_episodes}",
+                stacklevel=2,
+            )
         if self.calibration_episodes and self.calibration_seed == self.eval_seed:
-            raise ValueError(f"calibration_seed must differ from eval_seed ({self.eval_seed}): the rule is chosen on validation, not test, episodes")
+            raise ValueError(
+                f"calibration_seed must differ from eval_seed ({self.eval_seed}): "
+                "the rule is chosen on validation, not test, episodes"
+            )
         check_choice("until", self.until, STAGES)
         self.wandb = wandb_mode(self.wandb)
         unknown = set(self.redo) - set(STAGES)
@@ -142,8 +178,10 @@ class PipelineConfig:
             default = type(config)()
             for name, value in settings.items():
                 if getattr(config, name) not in (value, getattr(default, name)):  # set by hand, and would be lost
-                    raise ValueError(f"{stage}.{name}={getattr(config, name)!r} would be replaced by the main job's {value!r}, "
-                                     f"which it derives from its own {DERIVED_FROM.get(name, name)}: set that instead")
+                    raise ValueError(
+                        f"{stage}.{name}={getattr(config, name)!r} would be replaced by the main job's {value!r}, "
+                        f"which it derives from its own {DERIVED_FROM.get(name, name)}: set that instead"
+                    )
                 setattr(config, name, value)
             config.__post_init__()  # derived settings and checks again, with the job's values
         if self.exploration_rollouts > 0 and self.exploration_name() not in self.world_model.extra_data:
@@ -153,21 +191,39 @@ class PipelineConfig:
         """The stage settings that the job derives from its own: one task, seed, device, logging and folder."""
         root = Path(self.out)
         data = str(root / "data")
-        mixed = f"mixed_{self.policy}_seed{self.seed}"  # the mixed data holds this policy's rollouts: each policy and seed has its own
-        policy = {"task": self.task, "data": data, "out": str(root / "policies"), "policy": self.policy, "seed": self.seed,
-                  "device": self.device, "wandb": self.wandb}
+        # the mixed data holds this policy's rollouts: each policy and seed has its own
+        mixed = f"mixed_{self.policy}_seed{self.seed}"
+        policy = {
+            "task": self.task,
+            "data": data,
+            "out": str(root / "policies"),
+            "policy": self.policy,
+            "seed": self.seed,
+            "device": self.device,
+            "wandb": self.wandb,
+        }
         return {
             "collection": {"task": self.task, "out": data, "mixed_name": mixed, "seed": self.seed},
             "policy_training": policy,
-            "world_model": {"task": self.task, "data": data, "out": str(root / "world_models" / self.policy), "mixed_name": mixed,
-                            "seed": self.seed, "device": self.device, "wandb": self.wandb,
-                            "policy_checkpoint": str(replace(self.policy_training, **policy).run_dir() / "checkpoint.pt")},
+            "world_model": {
+                "task": self.task,
+                "data": data,
+                "out": str(root / "world_models" / self.policy),
+                "mixed_name": mixed,
+                "seed": self.seed,
+                "device": self.device,
+                "wandb": self.wandb,
+                "policy_checkpoint": str(replace(self.policy_training, **policy).run_dir() / "checkpoint.pt"),
+            },
         }
 
     def reranking(self) -> RerankingConfig:
         """DALI-R's settings in the job's calibration and evaluation: its ``num_candidates`` and
         ``dropout``, the evaluations' common noise, the selection rule the checkpoint stores."""
         return evaluation_reranking(num_candidates=self.num_candidates, dropout=self.dropout)
+
+    def branched_dir(self) -> Path:
+        return Path(self.out) / "data" / self.task / f"branched_{self.policy}_seed{self.seed}"
 
     def exploration_name(self) -> str:
         return f"explore_{self.policy}_seed{self.seed}"
@@ -198,5 +254,11 @@ PRESETS: dict[str, dict] = {
     # the reranking protocol (README, Results): exploration data; DALI-R leaves the base policy for the
     # ensemble arg-max only if it won on the validation episodes (calibration_grid's default)
     "cpu": {**_nest("cpu"), "exploration_rollouts": 60},
-    "smoke": {**_nest("smoke"), "base_policy_rollouts": 2, "eval_episodes": 2, "num_candidates": 4, "calibration_episodes": 1},
+    "smoke": {
+        **_nest("smoke"),
+        "base_policy_rollouts": 2,
+        "eval_episodes": 2,
+        "num_candidates": 4,
+        "calibration_episodes": 1,
+    },
 }

@@ -68,7 +68,9 @@ def command(config: dict) -> str:
     task, seed, policy and preset, and every setting that differs from the preset. (It sets what
     the run set: ``precision=auto`` still chooses for the machine it runs on.)"""
     head = {key: config[key] for key in ("task", "seed", "policy", "preset")}
-    default = config_dict(parse_config(PipelineConfig, [f"{k}={v}" for k, v in {**head, "out": config["out"]}.items()], PRESETS))
+    default = config_dict(
+        parse_config(PipelineConfig, [f"{k}={v}" for k, v in {**head, "out": config["out"]}.items()], PRESETS)
+    )
     default = json.loads(json.dumps(default))  # as the run's results.json holds it (tuples become lists)
     base = _flatten(default)
     # a setting that the run's code did not have yet ran at the value it was added with
@@ -76,54 +78,97 @@ def command(config: dict) -> str:
     explore = f"explore_{config['policy']}_seed{config['seed']}"
     for flat in (own, base):  # the exploration data joins the world model's data by itself
         if flat.get("exploration_rollouts"):
-            flat["world_model.extra_data"] = [name for name in flat.get("world_model.extra_data", []) if name != explore]
-    changed = [f"{key}={_cli(value)}" for key, value in own.items()
-               if key in base and value != base[key]  # (a setting that no longer exists is left out)
-               and (key.rsplit(".", 1)[-1] not in _DERIVED if "." in key else key not in _NOT_RESULTS)]
+            flat["world_model.extra_data"] = [
+                name for name in flat.get("world_model.extra_data", []) if name != explore
+            ]
+    changed = [
+        f"{key}={_cli(value)}"
+        for key, value in own.items()
+        if key in base
+        and value != base[key]  # (a setting that no longer exists is left out)
+        and (key.rsplit(".", 1)[-1] not in _DERIVED if "." in key else key not in _NOT_RESULTS)
+    ]
     return " ".join(["python examples/train_dp3_wm.py", *(f"{k}={v}" for k, v in head.items()), *changed])
 
 
-def run_record(result: dict, run: str, calibration: dict | None = None, commit: str | None = None, stages: dict | None = None) -> dict:
+def run_record(
+    result: dict, run: str, calibration: dict | None = None, commit: str | None = None, stages: dict | None = None
+) -> dict:
     """The record of one main-job run from its ``results.json`` (``result``), its folder name
     ``run`` and its ``calibration.json`` (if it was calibrated). ``commit`` names the code that
     made the run when ``result`` does not (results written before they named it). ``stages``:
     the run's lines of the stage log by stage (:func:`stage_log`), kept as each stage's wall time
     and the job's peak memory."""
     config = result["config"]
-    if calibration and calibration.get("alpha") is not None:  # runs from before the setting calibrated at their own alpha
+    if (
+        calibration and calibration.get("alpha") is not None
+    ):  # runs from before the setting calibrated at their own alpha
         config = {**config, "calibration_alpha": calibration["alpha"]}
     methods = {}
     for name, row in result["success"].items():
         outcomes = outcome_string(row["records"])
-        methods[SHORT[name]] = {"success_rate": row["success_rate"], "outcomes": outcomes,
-                                **({"selection": row["selection"]} if "selection" in row else {}), "seconds": row.get("seconds")}
+        methods[SHORT[name]] = {
+            "success_rate": row["success_rate"],
+            "outcomes": outcomes,
+            **({"selection": row["selection"]} if "selection" in row else {}),
+            "seconds": row.get("seconds"),
+        }
     record = {
-        "version": RECORD_VERSION, "task": config["task"], "policy": config["policy"], "seed": config["seed"],
-        "variant": variant_label(run, config["policy"], config["seed"]), "run": run,
-        "eval_seed": config["eval_seed"], "episodes": config["eval_episodes"], "num_candidates": config["num_candidates"],
-        "command": command(config), "commit": result.get("commit") or commit, "methods": methods,
+        "version": RECORD_VERSION,
+        "task": config["task"],
+        "policy": config["policy"],
+        "seed": config["seed"],
+        "variant": variant_label(run, config["policy"], config["seed"]),
+        "run": run,
+        "eval_seed": config["eval_seed"],
+        "episodes": config["eval_episodes"],
+        "num_candidates": config["num_candidates"],
+        "command": command(config),
+        "commit": result.get("commit") or commit,
+        "methods": methods,
     }
     if calibration and calibration.get("design") == "failures":  # calibrate_on_failures: a screen, then a confirmation
         record["validation"] = {
-            "design": "failures", "episodes": calibration["episodes"], "seed": calibration["seed"], "alpha": calibration["alpha"],
-            "base": round(calibration["base_success_rate"], 4), "failed": len(calibration["failed"]), "chosen": calibration["chosen"],
-            "entries": {e["name"]: {"wins": e["wins"], "losses": e["losses"], "estimated_gain": round(e["estimated_gain"], 4)}
-                        for e in calibration["entries"]},
+            "design": "failures",
+            "episodes": calibration["episodes"],
+            "seed": calibration["seed"],
+            "alpha": calibration["alpha"],
+            "base": round(calibration["base_success_rate"], 4),
+            "failed": len(calibration["failed"]),
+            "chosen": calibration["chosen"],
+            "entries": {
+                e["name"]: {"wins": e["wins"], "losses": e["losses"], "estimated_gain": round(e["estimated_gain"], 4)}
+                for e in calibration["entries"]
+            },
         }
     elif calibration and calibration.get("entries"):
         record["validation"] = {
-            "episodes": calibration["episodes"], "seed": calibration["seed"], "alpha": calibration.get("alpha"),
-            "base": round(calibration["base_success_rate"], 4), "chosen": calibration["chosen"],
-            "entries": {e["name"]: {"success_rate": round(e["success_rate"], 4), "base_only": e["vs_base"]["base_only"],
-                                    "method_only": e["vs_base"]["dalir_only"]} for e in calibration["entries"]},
+            "episodes": calibration["episodes"],
+            "seed": calibration["seed"],
+            "alpha": calibration.get("alpha"),
+            "base": round(calibration["base_success_rate"], 4),
+            "chosen": calibration["chosen"],
+            "entries": {
+                e["name"]: {
+                    "success_rate": round(e["success_rate"], 4),
+                    "base_only": e["vs_base"]["base_only"],
+                    "method_only": e["vs_base"]["dalir_only"],
+                }
+                for e in calibration["entries"]
+            },
         }
     confirmation = (calibration or {}).get("confirmation")
     if confirmation and "validation" in record:  # the chosen entry re-run on fresh validation episodes
         record["validation"]["confirmation"] = {
-            "episodes": confirmation["episodes"], "seed": confirmation["seed"], "entry": confirmation["entry"],
-            "base": round(confirmation["base_success_rate"], 4), "success_rate": round(confirmation["success_rate"], 4),
-            "base_only": confirmation["vs_base"]["base_only"], "method_only": confirmation["vs_base"]["dalir_only"],
-            "confirmed": confirmation["confirmed"]}
+            "episodes": confirmation["episodes"],
+            "seed": confirmation["seed"],
+            "entry": confirmation["entry"],
+            "base": round(confirmation["base_success_rate"], 4),
+            "success_rate": round(confirmation["success_rate"], 4),
+            "base_only": confirmation["vs_base"]["base_only"],
+            "method_only": confirmation["vs_base"]["dalir_only"],
+            "confirmed": confirmation["confirmed"],
+        }
     if stages:
         record["stage_seconds"] = {name: line["seconds"] for name, line in stages.items()}
         for key in TIMING_KEYS[1:]:  # the job's high-water marks: this process, its largest collector worker
@@ -184,8 +229,16 @@ def check_record(record: dict, where: str = "a run record") -> None:
                 raise ValueError(f"{where}: {name}'s outcomes do not give its success rate {row['success_rate']}")
         elif name != "base":
             if not {"base_only", "method_only"} <= set(row):
-                raise ValueError(f"{where}: {name} has neither its outcomes nor its discordant counts (base_only, method_only)")
-            if abs((row["method_only"] - row["base_only"]) / episodes - (row["success_rate"] - methods["base"]["success_rate"])) > 1e-6:
+                raise ValueError(
+                    f"{where}: {name} has neither its outcomes nor its discordant counts (base_only, method_only)"
+                )
+            if (
+                abs(
+                    (row["method_only"] - row["base_only"]) / episodes
+                    - (row["success_rate"] - methods["base"]["success_rate"])
+                )
+                > 1e-6
+            ):
                 raise ValueError(f"{where}: {name}'s discordant counts do not add up to the success rates")
 
 
@@ -201,8 +254,15 @@ def records_from_runs(root: str | Path, commit: str | None = None) -> list[dict]
             continue
         task, run = path.parent.parent.name, path.parent.name
         calibration = root / "calibration" / task / run / "calibration.json"
-        records.append(run_record(result, run, json.loads(calibration.read_text()) if calibration.exists() else None, commit,
-                                  stages.get(f"{task}/{run}")))
+        records.append(
+            run_record(
+                result,
+                run,
+                json.loads(calibration.read_text()) if calibration.exists() else None,
+                commit,
+                stages.get(f"{task}/{run}"),
+            )
+        )
     return records
 
 
@@ -230,8 +290,10 @@ def save_records(records: list[dict], folder: str | Path) -> list[Path]:
     for path, record in zip(paths, records):
         check_record(record, f"the record for {path}")
         if path in saved and saved[path]["methods"] != record["methods"]:
-            raise ValueError(f"{path} holds another run of {record['task']} {record['policy']} seed {record['seed']}: "
-                             "move it away to replace it")
+            raise ValueError(
+                f"{path} holds another run of {record['task']} {record['policy']} seed {record['seed']}: "
+                "move it away to replace it"
+            )
     for path, record in zip(paths, records):
         if path in saved:  # the same run: keep the timings it was saved with
             record = _with_timings(record, saved[path])
@@ -250,8 +312,11 @@ def merge_records(*sources: list[dict]) -> list[dict]:
             if kept["methods"] == record["methods"]:
                 merged[key] = _with_timings(kept, record)
             else:
-                warnings.warn(f"two different runs of {' '.join(map(str, key))}: the one of {kept['run']} (commit {kept['commit']}) is used",
-                              stacklevel=2)
+                warnings.warn(
+                    f"two different runs of {' '.join(map(str, key))}: "
+                    f"the one of {kept['run']} (commit {kept['commit']}) is used",
+                    stacklevel=2,
+                )
     return list(merged.values())
 
 

@@ -26,8 +26,14 @@ from torchrl_dalir.utils import atomic_write, git_commit
 def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path: Path) -> None:
     results = cfg.results_dir()
     rows = evaluate_checkpoints(
-        policy_path, world_model_path, episodes=cfg.eval_episodes, seed=cfg.eval_seed, device=cfg.device,
-        reranking=cfg.reranking(), actor_seed=cfg.seed, methods=cfg.eval_methods,
+        policy_path,
+        world_model_path,
+        episodes=cfg.eval_episodes,
+        seed=cfg.eval_seed,
+        device=cfg.device,
+        reranking=cfg.reranking(),
+        actor_seed=cfg.seed,
+        methods=cfg.eval_methods,
     )
     policy = load_policy(policy_path, task=cfg.task)
 
@@ -43,15 +49,25 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
     metrics = parts.metrics
     base = [r["success"] for r in rows[BASE]["records"]] if BASE in rows else None
     lines = [
-        f"# DALI-R on {cfg.task} ({cfg.policy}, seed {cfg.seed}, preset {cfg.preset}, scorer target {cfg.world_model.scorer_target})",
+        (
+            f"# DALI-R on {cfg.task} ({cfg.policy}, seed {cfg.seed}, preset {cfg.preset}, "
+            f"scorer target {cfg.world_model.scorer_target})"
+        ),
         "",
-        f"{cfg.eval_episodes} test episodes (evaluation seed {cfg.eval_seed}); DALI-R: {cfg.num_candidates} candidates, point dropout {cfg.dropout}.",
+        (
+            f"{cfg.eval_episodes} test episodes (evaluation seed {cfg.eval_seed}); "
+            f"DALI-R: {cfg.num_candidates} candidates, point dropout {cfg.dropout}."
+        ),
         "",
         "| method | rule | success | only base / only this method | sign-test p |",
         "| --- | --- | --- | --- | --- |",
     ]
     for name, row in rows.items():
-        test = paired_sign_test(base, [r["success"] for r in row["records"]]) if base is not None and name != BASE else None
+        test = (
+            paired_sign_test(base, [r["success"] for r in row["records"]])
+            if base is not None and name != BASE
+            else None
+        )
         paired = f"{test['base_only']} / {test['dalir_only']} | {test['p_value']:.2f}" if test else " | "
         lines.append(f"| {name} | {row.get('selection', '')} | {row['success_rate']:.1%} | {paired} |")
     lines += [
@@ -60,21 +76,43 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
         f"Held-out world-model MSE {metrics['wm_mse']:.4f} vs {metrics['no_change_mse']:.4f} for 'no change'.",
     ]
     if "imagined_brier_ensemble" in metrics:
-        lines.append(f"On imagined latents of held-out chunks (target at t + k): Brier {metrics['imagined_brier_state_scorer']:.4f} "
-                     f"(state scorer) vs {metrics['imagined_brier_ensemble']:.4f} (scorer ensemble, member std {metrics['ensemble_std']:.4f}).")
+        lines.append(
+            "On imagined latents of held-out chunks (target at t + k): "
+            f"Brier {metrics['imagined_brier_state_scorer']:.4f} (state scorer) "
+            f"vs {metrics['imagined_brier_ensemble']:.4f} (scorer ensemble, member std {metrics['ensemble_std']:.4f})."
+        )
     for name in (DALIR, ARGMAX):
         if name in rows and "replays" in rows[name]:
-            lines.append(f"{name}'s rule ({rows[name]['selection']}) keeps the clean candidate at every decision: it is the {rows[name]['replays']}'s episodes, not run again.")
+            lines.append(
+                f"{name}'s rule ({rows[name]['selection']}) keeps the clean candidate at every decision: "
+                f"it is the {rows[name]['replays']}'s episodes, not run again."
+            )
         elif name in rows:
             choices = pool_decision_summaries([record["details"] for record in rows[name]["records"]])
-            lines.append(f"{name}'s choices over {choices['decisions']} decisions: the clean candidate kept in {choices['clean_chosen']:.0%}; "
-                         f"the chosen candidate scored {choices['chosen_margin']:.4f} above the clean one (candidate score std {choices['score_spread']:.4f}).")
-    table = "\n".join([
-        *lines,
-        f"Diagnostics: {plot.name}",
-        "",
-    ])
+            lines.append(
+                f"{name}'s choices over {choices['decisions']} decisions: "
+                f"the clean candidate kept in {choices['clean_chosen']:.0%}; "
+                f"the chosen candidate scored {choices['chosen_margin']:.4f} above the clean one "
+                f"(candidate score std {choices['score_spread']:.4f})."
+            )
+    table = "\n".join(
+        [
+            *lines,
+            f"Diagnostics: {plot.name}",
+            "",
+        ]
+    )
     atomic_write(results / "results.md", table)
-    atomic_write(results / "results.json", json.dumps(
-        {"config": config_dict(cfg), "commit": git_commit(Path(__file__).parent), "success": rows, "world_model_metrics": metrics,
-         "diagnostics": curves}, indent=1))
+    atomic_write(
+        results / "results.json",
+        json.dumps(
+            {
+                "config": config_dict(cfg),
+                "commit": git_commit(Path(__file__).parent),
+                "success": rows,
+                "world_model_metrics": metrics,
+                "diagnostics": curves,
+            },
+            indent=1,
+        ),
+    )

@@ -1,5 +1,5 @@
 """The main job's stages in order: demos -> base policy -> mixed data -> (exploration data) ->
-world model -> calibration -> evaluation, one task and seed.
+(branched outcomes) -> world model -> calibration -> evaluation, one task and seed.
 
 Every stage writes an artifact under ``cfg.out`` and is skipped once that artifact is complete (a
 dataset marked complete in its ``meta.json``, a training at its last step); an interrupted stage
@@ -17,25 +17,27 @@ import time
 from functools import partial
 from pathlib import Path
 
-from torchrl_dalir.checkpoints import load_world_model, safe_torch_load, store_selection, training_finished
+from torchrl_dalir.checkpoints import load_policy, load_world_model, safe_torch_load, store_selection, training_finished
 from torchrl_dalir.config import config_dict
 from torchrl_dalir.data import Source, collect
+from torchrl_dalir.data.branched import collect_branched
 from torchrl_dalir.data.storage import is_complete
 from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, calibrate_on_failures
 from torchrl_dalir.evaluation.compare import BASE, DALIR, p_better, paired_sign_test
-from torchrl_dalir.pipeline.config import STAGES, PipelineConfig
+from torchrl_dalir.pipeline.config import BRANCHED_SEED_BASE, STAGES, PipelineConfig
 from torchrl_dalir.pipeline.report import evaluate_and_report
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training import train_policy, train_world_model
 from torchrl_dalir.training.logging import log_results
 from torchrl_dalir.training.policy import exploration_actor, policy_actor
+from torchrl_dalir.training.ranking import RankingTrainingConfig, train_ranking_scorer
 from torchrl_dalir.utils import atomic_write
 
 
 def stage(name: str, cfg: PipelineConfig, artifact: Path, run, finished=Path.exists) -> None:
-    """Runs ``run`` unless ``finished(artifact)`` (a stage that ran to its end; an interrupted one runs again and resumes). A stage in ``cfg.redo`` starts from scratch:
-    its directory (the artifact's parent) is first moved aside to ``<dir>.replaced-<time>``.
-    Stages after ``cfg.until`` are not run."""
+    """Runs ``run`` unless ``finished(artifact)`` (a stage that ran to its end; an interrupted one runs again and
+    resumes). A stage in ``cfg.redo`` starts from scratch: its directory (the artifact's parent) is first moved
+    aside to ``<dir>.replaced-<time>``. Stages after ``cfg.until`` are not run."""
     if STAGES.index(name) > STAGES.index(cfg.until):
         return
     if name in cfg.redo and artifact.parent.exists():
@@ -58,8 +60,14 @@ def log_stage(cfg: PipelineConfig, name: str, seconds: float, memory: tuple[floa
     file per run so that jobs sharing ``out`` never write to one file. A redone stage adds another
     line; the last one counts."""
     own, workers = (None, None) if memory is None else (round(m, 2) for m in memory)
-    line = {"run": f"{cfg.task}/{cfg.run_name()}", "stage": name, "seconds": round(seconds, 1), "peak_memory_gib": own,
-            "workers_peak_memory_gib": workers, "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    line = {
+        "run": f"{cfg.task}/{cfg.run_name()}",
+        "stage": name,
+        "seconds": round(seconds, 1),
+        "peak_memory_gib": own,
+        "workers_peak_memory_gib": workers,
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
     path = cfg.stage_log_path()
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "a+b") as log:  # (appends go to the end whatever the position read)
@@ -97,50 +105,133 @@ def run_pipeline(cfg: PipelineConfig) -> Path:
 
     # 1. Expert demos: successful expert trajectories only, the same for every training seed.
     # (a dataset is done once its meta.json marks it complete, not when its rows exist: the two are not written at once)
-    stage("demos", cfg, data.demos_dir() / "meta.json", lambda: collect(
-        cfg.task, data.demos_dir(), [Source("expert", data.num_demos)], seed=cfg.demo_seed, successes_only=True, **common),
-        finished=dataset_finished)
+    stage(
+        "demos",
+        cfg,
+        data.demos_dir() / "meta.json",
+        lambda: collect(
+            cfg.task,
+            data.demos_dir(),
+            [Source("expert", data.num_demos)],
+            seed=cfg.demo_seed,
+            successes_only=True,
+            **common,
+        ),
+        finished=dataset_finished,
+    )
 
     # 2. The base policy learns from the demos alone (the data asymmetry).
     # (an interrupted training leaves a checkpoint behind: the stage resumes it)
-    stage("policy", cfg, policy_path, lambda: train_policy(cfg.policy_training),
-          finished=trained_as_asked("policy", cfg.policy_training.resolved(), training_finished))
+    stage(
+        "policy",
+        cfg,
+        policy_path,
+        lambda: train_policy(cfg.policy_training),
+        finished=trained_as_asked("policy", cfg.policy_training.resolved(), training_finished),
+    )
 
     # 3. Mixed-quality data: noisy experts and rollouts of the trained base policy, all labeled.
-    base_rollouts = Source("base_policy", cfg.base_policy_rollouts, policy=partial(policy_actor, str(policy_path)), expert=False, history=2)
-    stage("mixed", cfg, data.mixed_dir() / "meta.json", lambda: collect(
-        cfg.task, data.mixed_dir(), [*data.mixed_sources(), base_rollouts], seed=2 * cfg.seed + 1,
-        noise_correlation=data.noise_correlation, **common), finished=dataset_finished)
+    base_rollouts = Source(
+        "base_policy", cfg.base_policy_rollouts, policy=partial(policy_actor, str(policy_path)), expert=False, history=2
+    )
+    stage(
+        "mixed",
+        cfg,
+        data.mixed_dir() / "meta.json",
+        lambda: collect(
+            cfg.task,
+            data.mixed_dir(),
+            [*data.mixed_sources(), base_rollouts],
+            seed=2 * cfg.seed + 1,
+            noise_correlation=data.noise_correlation,
+            **common,
+        ),
+        finished=dataset_finished,
+    )
 
     # 3b. Optional exploration data: the base policy acting on point-dropout views.
     if cfg.exploration_rollouts > 0:
-        explore = Source("exploration", cfg.exploration_rollouts, policy=partial(exploration_actor, str(policy_path), cfg.dropout, cfg.seed),
-                         expert=False, history=2)
-        stage("exploration", cfg, data.task_dir() / cfg.exploration_name() / "meta.json", lambda: collect(
-            cfg.task, data.task_dir() / cfg.exploration_name(), [explore], seed=2 * cfg.seed + 2, **common), finished=dataset_finished)
+        explore = Source(
+            "exploration",
+            cfg.exploration_rollouts,
+            policy=partial(exploration_actor, str(policy_path), cfg.dropout, cfg.seed),
+            expert=False,
+            history=2,
+        )
+        stage(
+            "exploration",
+            cfg,
+            data.task_dir() / cfg.exploration_name() / "meta.json",
+            lambda: collect(
+                cfg.task, data.task_dir() / cfg.exploration_name(), [explore], seed=2 * cfg.seed + 2, **common
+            ),
+            finished=dataset_finished,
+        )
+
+    # 3c. Optional branched outcomes: which of a decision's candidates, each run from the same state, succeeds.
+    if cfg.branched_episodes > 0:
+        stage(
+            "branched",
+            cfg,
+            cfg.branched_dir() / "meta.json",
+            lambda: branch_and_rank(cfg, policy_path),
+            finished=branched_finished,
+        )
 
     # 4. Latent encoder, task-completion scorer and latent world model, the policy frozen.
-    stage("world_model", cfg, world_model_path, lambda: train_world_model(cfg.world_model),
-          finished=trained_as_asked("world_model", cfg.world_model, Path.exists))
+    stage(
+        "world_model",
+        cfg,
+        world_model_path,
+        lambda: train_world_model(cfg.world_model),
+        finished=trained_as_asked("world_model", cfg.world_model, Path.exists),
+    )
 
     # 5. The selection rule's setting, chosen on validation episodes and stored in the world model.
     # (done only if the world model holds this calibration: a retrained world model is calibrated again)
     calibration = cfg.calibration_dir() / "calibration.json"
-    stage("calibration", cfg, calibration, lambda: calibrate_and_record(cfg, policy_path, world_model_path, calibration),
-          finished=lambda path: path.exists() and json.loads(path.read_text()) == load_world_model(world_model_path).calibration)
+    stage(
+        "calibration",
+        cfg,
+        calibration,
+        lambda: calibrate_and_record(cfg, policy_path, world_model_path, calibration),
+        finished=lambda path: (
+            path.exists() and json.loads(path.read_text()) == load_world_model(world_model_path).calibration
+        ),
+    )
 
     # 6. Base policy, DALI-R (calibrated rule and the paper's arg-max) and the random-candidate
     #    control on the same test episodes.
     # (done only if DALI-R was evaluated with the rule that the world model now names)
-    stage("evaluation", cfg, results / "results.json", lambda: evaluate_and_log(cfg, policy_path, world_model_path),
-          finished=lambda path: path.exists() and evaluated_rule(path) in (None, load_world_model(world_model_path).selection.name))
+    stage(
+        "evaluation",
+        cfg,
+        results / "results.json",
+        lambda: evaluate_and_log(cfg, policy_path, world_model_path),
+        finished=lambda path: (
+            path.exists() and evaluated_rule(path) in (None, load_world_model(world_model_path).selection.name)
+        ),
+    )
     if cfg.until == STAGES[-1]:
         print((results / "results.md").read_text())
     return results
 
 
 # Settings that say where a training writes, on what device, or how it reports; not what it learns.
-NOT_LEARNED = frozenset({"out", "data", "device", "precision", "checkpoint_every", "log_every", "wandb", "progress", "preset", "policy_checkpoint"})
+NOT_LEARNED = frozenset(
+    {
+        "out",
+        "data",
+        "device",
+        "precision",
+        "checkpoint_every",
+        "log_every",
+        "wandb",
+        "progress",
+        "preset",
+        "policy_checkpoint",
+    }
+)
 
 
 def trained_as_asked(name: str, config, done) -> callable:
@@ -157,11 +248,42 @@ def trained_as_asked(name: str, config, done) -> callable:
         differ = sorted(key for key in (asked.keys() & stored.keys()) - NOT_LEARNED if stored[key] != asked[key])
         if differ:
             settings = ", ".join(f"{key}={stored[key]!r} (this job: {asked[key]!r})" for key in differ)
-            raise ValueError(f"{path} was trained with {settings}: pass redo=[{name}] to train it again with this job's "
-                             "settings (the previous run is kept aside), or choose another out=")
+            raise ValueError(
+                f"{path} was trained with {settings}: pass redo=[{name}] to train it again with this job's "
+                "settings (the previous run is kept aside), or choose another out="
+            )
         return done(path)
 
     return finished
+
+
+def branch_and_rank(cfg: PipelineConfig, policy_path: Path) -> None:
+    """The branched stage: collects (or resumes) the branched outcomes, then writes ``ranking.json`` beside
+    them, the held-out within-decision AUC of a scorer trained on them (with two episodes or more)."""
+    policy = load_policy(policy_path, cfg.device)
+    reranking = cfg.reranking().updated(num_candidates=cfg.branched_candidates)
+    seed = BRANCHED_SEED_BASE + 1000 * cfg.seed
+    outcomes = collect_branched(
+        policy,
+        cfg.branched_dir(),
+        reranking,
+        episodes=cfg.branched_episodes,
+        stride=cfg.branched_stride,
+        seed=seed,
+        progress=cfg.collection.progress,
+        device=cfg.device,
+    )
+    if cfg.branched_episodes >= 2:
+        _, metrics = train_ranking_scorer(outcomes, policy, RankingTrainingConfig(seed=cfg.seed))
+        atomic_write(cfg.branched_dir() / "ranking.json", json.dumps(metrics, indent=1))
+        print(
+            f"[branched] {outcomes}: held-out within-decision AUC {metrics['held_out_auc']:.3f} "
+            f"on {metrics['held_out_split_decisions']} split decisions"
+        )
+
+
+def branched_finished(meta_path: Path) -> bool:
+    return meta_path.exists() and json.loads(meta_path.read_text()).get("complete", False)
 
 
 def dataset_finished(meta_path: Path) -> bool:
@@ -173,12 +295,25 @@ def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_pat
     """Chooses the selection rule's setting on validation episodes (``calibration_episodes=0``:
     the paper's arg-max) and stores it in the world model; the record also goes to ``out``."""
     if cfg.calibration_episodes > 0:
-        common = dict(grid=GRIDS[cfg.calibration_grid], alpha=cfg.calibration_alpha, seed=cfg.calibration_seed, test_seed=cfg.eval_seed,
-                      device=cfg.device, reranking=cfg.reranking(), actor_seed=cfg.seed)
+        common = dict(
+            grid=GRIDS[cfg.calibration_grid],
+            alpha=cfg.calibration_alpha,
+            seed=cfg.calibration_seed,
+            test_seed=cfg.eval_seed,
+            device=cfg.device,
+            reranking=cfg.reranking(),
+            actor_seed=cfg.seed,
+        )
         if cfg.calibration_design == "failures":
             record = calibrate_on_failures(policy_path, world_model_path, failures=cfg.calibration_failures, **common)
         else:
-            record = calibrate(policy_path, world_model_path, episodes=cfg.calibration_episodes, confirm_episodes=cfg.calibration_confirm_episodes, **common)
+            record = calibrate(
+                policy_path,
+                world_model_path,
+                episodes=cfg.calibration_episodes,
+                confirm_episodes=cfg.calibration_confirm_episodes,
+                **common,
+            )
         print(f"[calibration] chosen on {record['episodes']} validation episodes: {record['chosen']}", flush=True)
     else:
         record = {"chosen": SelectionConfig().name, "episodes": 0}
@@ -222,8 +357,14 @@ def log_calibration(cfg: PipelineConfig, record: dict) -> None:
         numbers["calibration/confirmation/p_one_sided"] = p_one_sided(confirmation["vs_base"])
         numbers["calibration/confirmation/confirmed"] = float(confirmation["confirmed"])
     numbers["calibration/chosen_is_base"] = float(record["chosen"] == GRIDS[cfg.calibration_grid][0].name)  # margin 1
-    details = {"chosen": record["chosen"], "design": record.get("design", "fixed"), "alpha": record.get("alpha"),
-               "episodes": record["episodes"], "grid": cfg.calibration_grid, "seed": record.get("seed")}
+    details = {
+        "chosen": record["chosen"],
+        "design": record.get("design", "fixed"),
+        "alpha": record.get("alpha"),
+        "episodes": record["episodes"],
+        "grid": cfg.calibration_grid,
+        "seed": record.get("seed"),
+    }
     log_results(cfg.calibration_dir(), f"{cfg.task}_{cfg.run_name()}_calibration", cfg.wandb, numbers, details)
 
 
@@ -245,6 +386,9 @@ def evaluate_and_log(cfg: PipelineConfig, policy_path: Path, world_model_path: P
         if base is not None and name != BASE:
             test = paired_sign_test(base, [r["success"] for r in row["records"]])
             numbers[f"evaluation/{name}/p_two_sided"] = test["p_value"]
-    details = {"episodes": cfg.eval_episodes, "eval_seed": cfg.eval_seed,
-               "selection": success.get(DALIR, {}).get("selection")}
+    details = {
+        "episodes": cfg.eval_episodes,
+        "eval_seed": cfg.eval_seed,
+        "selection": success.get(DALIR, {}).get("selection"),
+    }
     log_results(cfg.results_dir(), f"{cfg.task}_{cfg.run_name()}_evaluation", cfg.wandb, numbers, details)

@@ -14,7 +14,18 @@ from torchrl_dalir.reranking.search import SEARCH_METHODS, SearchConfig
 from torchrl_dalir.reranking.selection import SelectionConfig
 
 __all__ = [
-    "CANDIDATE_GENERATORS", "CANDIDATE_SCORES", "CHOSEN_CANDIDATE", "ChunkPolicy", "CleanObservation", "GaussianObservationNoise",
-    "PointDropout", "RandomCandidateActor", "RerankingActor", "RerankingConfig", "SEARCH_METHODS", "SearchConfig", "SelectionConfig",
+    "CANDIDATE_GENERATORS",
+    "CANDIDATE_SCORES",
+    "CHOSEN_CANDIDATE",
+    "ChunkPolicy",
+    "CleanObservation",
+    "GaussianObservationNoise",
+    "PointDropout",
+    "RandomCandidateActor",
+    "RerankingActor",
+    "RerankingConfig",
+    "SEARCH_METHODS",
+    "SearchConfig",
+    "SelectionConfig",
     "candidate_generator",
 ]

@@ -78,11 +78,14 @@ class RerankingActor(TensorDictModuleBase):
 
     Example:
         >>> from tensordict import TensorDict
-        >>> from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
-        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> from torchrl_dalir.modules import (LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer,
+        ...                                    make_policy)
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]),
+        ...                      action_dim=4, state_dim=4)
         >>> encoder = LatentEncoder.from_policy(policy)  # untrained parts here; from_checkpoints loads trained ones
         >>> world_model = LatentWorldModel(encoder.latent_dim, action_dim=4, hidden=32, layers=1, heads=2)
-        >>> dalir = RerankingActor(policy, encoder, world_model, TaskCompletionScorer(encoder.latent_dim, hidden=32), num_candidates=4)
+        >>> scorer = TaskCompletionScorer(encoder.latent_dim, hidden=32)
+        >>> dalir = RerankingActor(policy, encoder, world_model, scorer, num_candidates=4)
         >>> observation = TensorDict(point_cloud=torch.rand(2, 64, 3), agent_pos=torch.rand(2, 4))  # a 2-step history
         >>> decision = dalir(observation.clone())
         >>> decision["action_chunk"].shape, decision["dalir", "candidate_scores"].shape
@@ -116,29 +119,47 @@ class RerankingActor(TensorDictModuleBase):
         self.in_keys, self.out_keys = list(in_keys), list(out_keys)
         check_chunk_policy(policy, type(self).__name__)
         config = (config if config is not None else RerankingConfig()).updated(
-            num_candidates=num_candidates, selection=selection, search=search, common_noise=common_noise,
+            num_candidates=num_candidates,
+            selection=selection,
+            search=search,
+            common_noise=common_noise,
             candidates=candidates if isinstance(candidates, str) else None,
         )
         if world_model.action_dim != policy.action_dim:
-            raise ValueError(f"the world model takes {world_model.action_dim}-D actions; the policy outputs {policy.action_dim}-D")
+            raise ValueError(
+                f"the world model takes {world_model.action_dim}-D actions; the policy outputs {policy.action_dim}-D"
+            )
         if world_model.action_steps != policy.action_steps:
-            raise ValueError(f"the world model imagines {world_model.action_steps} actions; the policy executes {policy.action_steps}")
+            raise ValueError(
+                f"the world model imagines {world_model.action_steps} actions; "
+                f"the policy executes {policy.action_steps}"
+            )
         if world_model.latent_dim != encoder.latent_dim:
             raise ValueError("the world model and the latent encoder disagree on the latent size")
         self.config = config
         self.selection = config.selection if config.selection is not None else SelectionConfig()
         if self.selection.scorer == "ensemble" and ensemble is None:
-            raise ValueError(f"selection {self.selection.name} needs a scorer ensemble; this world model has none "
-                             "(checkpoints written before version 0.2.0 have none: retrain the world-model stage)")
+            raise ValueError(
+                f"selection {self.selection.name} needs a scorer ensemble; this world model has none "
+                "(checkpoints written before version 0.2.0 have none: retrain the world-model stage)"
+            )
         self.search = config.search
         self.search.check(config.num_candidates, policy.action_dim)
-        self.policy, self.encoder, self.world_model, self.scorer, self.ensemble = policy, encoder, world_model, scorer, ensemble
+        self.policy, self.encoder, self.world_model, self.scorer, self.ensemble = (
+            policy,
+            encoder,
+            world_model,
+            scorer,
+            ensemble,
+        )
         for module in (policy, encoder, world_model, scorer, ensemble):
             if isinstance(module, nn.Module):
                 module.eval().requires_grad_(False)
         self.executed = executed(policy)  # the chunk entries a decision executes, which the world model imagines
         self.num_candidates = config.num_candidates
-        self.candidates = candidates if candidates is not None and not isinstance(candidates, str) else candidate_generator(config)
+        self.candidates = (
+            candidates if candidates is not None and not isinstance(candidates, str) else candidate_generator(config)
+        )
         self.seed, self.common_noise = seed, config.common_noise
         self.generator = torch.Generator().manual_seed(seed)
 
@@ -151,7 +172,9 @@ class RerankingActor(TensorDictModuleBase):
         self.generator.manual_seed(self.seed)
 
     @classmethod
-    def from_checkpoints(cls, policy_path: str | Path, world_model_path: str | Path, device="cpu", **kwargs) -> RerankingActor:
+    def from_checkpoints(
+        cls, policy_path: str | Path, world_model_path: str | Path, device="cpu", **kwargs
+    ) -> RerankingActor:
         """Loads a policy and the world model trained on top of it; refuses a world model of
         another task or another policy (by the digest of the policy's weights that it records)."""
         return cls.on_policy(load_policy(policy_path, device), world_model_path, device, **kwargs)
@@ -168,8 +191,11 @@ class RerankingActor(TensorDictModuleBase):
         parts = load_world_model(world_model_path, device, policy=policy)
         given = "selection" in kwargs or (kwargs.get("config") is not None and kwargs["config"].selection is not None)
         if cls.uses_selection and not given and parts.selection.keeps_clean:
-            warnings.warn(f"{world_model_path}: the calibrated rule {parts.selection.name} always keeps the clean candidate, so this actor "
-                          "executes the base policy's chunks; pass selection= to rerank anyway", stacklevel=2)
+            warnings.warn(
+                f"{world_model_path}: the calibrated rule {parts.selection.name} always keeps the clean candidate, "
+                "so this actor executes the base policy's chunks; pass selection= to rerank anyway",
+                stacklevel=2,
+            )
         if not given:
             kwargs["selection"] = parts.selection
         return cls(policy, parts.encoder, parts.world_model, parts.scorer, ensemble=parts.ensemble, **kwargs)
@@ -185,7 +211,8 @@ class RerankingActor(TensorDictModuleBase):
         return self.world_model.imagine(latent.unsqueeze(1).expand(-1, executed.shape[1], -1), executed)
 
     def _probabilities(self, imagined: torch.Tensor) -> torch.Tensor:
-        """Completion probabilities ``[B, E, K]`` of imagined latents ``[B, K, L]`` by each member of the selection's scorer."""
+        """Completion probabilities ``[B, E, K]`` of imagined latents ``[B, K, L]`` by each member of the
+        selection's scorer."""
         if self.selection.scorer == "ensemble":
             return torch.sigmoid(self.ensemble(imagined)).transpose(0, 1)
         return torch.sigmoid(self.scorer(imagined)).unsqueeze(1)
@@ -195,8 +222,12 @@ class RerankingActor(TensorDictModuleBase):
         """Completion probabilities ``[B, E, K]`` of chunks ``[B, K, H, A]`` by each of the ``E``
         members of the selection's scorer (``E = 1`` for the state scorer)."""
         members = self._probabilities(self.imagine(cloud, agent_pos, chunks))
-        check_finite_output(members, "DALI-R's candidate_scores", "the latent encoder, world model or scorer gave NaN (damaged "
-                            "weights, or an observation far outside the training data): reload or retrain the world model")
+        check_finite_output(
+            members,
+            "DALI-R's candidate_scores",
+            "the latent encoder, world model or scorer gave NaN (damaged "
+            "weights, or an observation far outside the training data): reload or retrain the world model",
+        )
         return members
 
     @torch.no_grad()
@@ -221,7 +252,9 @@ class RerankingActor(TensorDictModuleBase):
         if self.search.method == "none":
             return chunks
         objective = self.objective(cloud, agent_pos)
-        return search_candidates(chunks, objective, self.search, self.search_normalizer(), self.executed, self.generator)
+        return search_candidates(
+            chunks, objective, self.search, self.search_normalizer(), self.executed, self.generator
+        )
 
     def search_normalizer(self):
         """The action space an action-space search works in: the policy's normalised actions (its

@@ -65,8 +65,15 @@ def _base_actions(policy, observations: list[dict], episode_seed: int, decision:
     return executed_actions(policy, policy.sample(policy.encode(cloud, agent_pos), noise=noise)[0])
 
 
-def continue_base(env: PointCloudObservation, policy, observations: list[dict], episode_seed: int, decision: int,
-                  device, visit: Callable | None = None) -> tuple[bool, int]:
+def continue_base(
+    env: PointCloudObservation,
+    policy,
+    observations: list[dict],
+    episode_seed: int,
+    decision: int,
+    device,
+    visit: Callable | None = None,
+) -> tuple[bool, int]:
     """Runs the base policy from ``decision`` to the episode's end; its success and the steps it took.
     ``visit(decision, observations)`` is called before each decision (the base episode records its states this way)."""
     steps = 0
@@ -82,13 +89,23 @@ def continue_base(env: PointCloudObservation, policy, observations: list[dict], 
 
 
 @torch.no_grad()
-def candidate_chunks(policy, generator, observations: list[dict], num_candidates: int, episode_seed: int,
-                     decision: int, name: str, device) -> torch.Tensor:
+def candidate_chunks(
+    policy,
+    generator,
+    observations: list[dict],
+    num_candidates: int,
+    episode_seed: int,
+    decision: int,
+    name: str,
+    device,
+) -> torch.Tensor:
     """A decision's candidate chunks ``[K, H, A]``; candidate 0 is the base policy's own chunk, the others
     come from ``generator`` with fresh noise, all seeded by the episode, the decision and ``name``."""
     cloud, agent_pos = observation_history(policy, observations, device)
     stream = _stream(name, episode_seed, decision)
-    clean = policy.sample(policy.encode(cloud, agent_pos), noise=decision_noise(policy, episode_seed, decision).to(device))
+    clean = policy.sample(
+        policy.encode(cloud, agent_pos), noise=decision_noise(policy, episode_seed, decision).to(device)
+    )
     conditions = generator.conditions(policy, cloud, agent_pos, num_candidates, stream)[:, 1:]
     return torch.cat([clean, policy.sample(conditions, stream)[0]])
 
@@ -98,8 +115,16 @@ def executed_actions(policy, chunks: torch.Tensor) -> np.ndarray:
     return chunks[..., executed_slice(policy.obs_steps, policy.action_steps), :].cpu().numpy()
 
 
-def branch(env: PointCloudObservation, policy, state, observations: list[dict], actions: np.ndarray,
-           episode_seed: int, decision: int, device) -> tuple[bool, int]:
+def branch(
+    env: PointCloudObservation,
+    policy,
+    state,
+    observations: list[dict],
+    actions: np.ndarray,
+    episode_seed: int,
+    decision: int,
+    device,
+) -> tuple[bool, int]:
     """From simulator ``state`` (decision ``decision``), executes ``actions`` and continues with the base
     policy: whether the branch succeeded and how many steps after the decision it ended."""
     env.set_state(state)
@@ -108,5 +133,3 @@ def branch(env: PointCloudObservation, policy, state, observations: list[dict], 
         return success, len(new)
     success, steps = continue_base(env, policy, observations + new, episode_seed, decision + 1, device)
     return success, len(new) + steps
-
-

@@ -53,7 +53,11 @@ class PointDropout(TensorDictModuleBase):
     def __init__(self, dropout: float = RerankingConfig.dropout, seed: int = 0, *, p: float | None = None):
         super().__init__()
         if p is not None:
-            warnings.warn("PointDropout(p=...) is now PointDropout(dropout=...), the name the configurations use", DeprecationWarning, stacklevel=2)
+            warnings.warn(
+                "PointDropout(p=...) is now PointDropout(dropout=...), the name the configurations use",
+                DeprecationWarning,
+                stacklevel=2,
+            )
             dropout = p
         check_probability("dropout probability", dropout)
         self.dropout = dropout
@@ -117,9 +121,11 @@ class GaussianObservationNoise:
 
     Example:
         >>> from torchrl_dalir.modules import PolicyConfig, make_policy
-        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]),
+        ...                      action_dim=4, state_dim=4)
         >>> cloud, agent_pos = torch.rand(2, 2, 64, 3), torch.rand(2, 2, 4)  # 2 observations, a 2-step history each
-        >>> conditions = GaussianObservationNoise(0.01).conditions(policy, cloud, agent_pos, 8, torch.Generator().manual_seed(0))
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> conditions = GaussianObservationNoise(0.01).conditions(policy, cloud, agent_pos, 8, generator)
         >>> conditions.shape  # [B, K, C]: the policy's condition for each of 8 candidates
         torch.Size([2, 8, 256])
         >>> torch.allclose(conditions[:, 0], policy.encode(cloud, agent_pos), atol=1e-6)  # candidate 0 is clean
@@ -147,7 +153,8 @@ class CleanObservation:
 
     Example:
         >>> from torchrl_dalir.modules import PolicyConfig, make_policy
-        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4)
+        >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]),
+        ...                      action_dim=4, state_dim=4)
         >>> conditions = CleanObservation().conditions(policy, torch.rand(1, 2, 64, 3), torch.rand(1, 2, 4), 8, None)
         >>> conditions.shape, bool((conditions == conditions[:, :1]).all())  # 8 copies of the clean condition
         (torch.Size([1, 8, 256]), True)
@@ -192,7 +199,8 @@ def candidate_generator(config: RerankingConfig):
     """The candidate generator that ``config`` names, with its setting (``dropout`` or ``noise_std``).
 
     Example:
-        >>> candidate_generator(RerankingConfig()).dropout, type(candidate_generator(RerankingConfig(candidates="clean"))).__name__
+        >>> (candidate_generator(RerankingConfig()).dropout,
+        ...  type(candidate_generator(RerankingConfig(candidates="clean"))).__name__)
         (0.2, 'CleanObservation')
     """
     if config.candidates == "dropout":

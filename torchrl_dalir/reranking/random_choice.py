@@ -19,9 +19,11 @@ class RandomCandidateActor(RerankingActor):
 
     Example:
         >>> from tensordict import TensorDict
-        >>> from torchrl_dalir.modules import LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer, make_policy
+        >>> from torchrl_dalir.modules import (LatentEncoder, LatentWorldModel, PolicyConfig, TaskCompletionScorer,
+        ...                                    make_policy)
         >>> policy = make_policy(PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), 4, 4)
-        >>> parts = LatentEncoder.from_policy(policy), LatentWorldModel(128, 4, hidden=32, layers=1, heads=2), TaskCompletionScorer(128)
+        >>> parts = (LatentEncoder.from_policy(policy), LatentWorldModel(128, 4, hidden=32, layers=1, heads=2),
+        ...          TaskCompletionScorer(128))
         >>> control = RandomCandidateActor(policy, *parts, num_candidates=4, seed=1)
         >>> td = control(TensorDict(point_cloud=torch.rand(3, 2, 64, 3), agent_pos=torch.rand(3, 2, 4), batch_size=[3]))
         >>> torch.equal(td["dalir", "chosen_candidate"], td["dalir", "candidate_scores"].argmax(-1))  # the largest draw

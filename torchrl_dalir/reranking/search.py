@@ -92,11 +92,18 @@ class SearchConfig:
         if self.method == "none":
             return
         if num_candidates < 2:
-            raise ValueError(f"search {self.method} keeps candidate 0 clean and needs num_candidates >= 2, got {num_candidates}")
+            raise ValueError(
+                f"search {self.method} keeps candidate 0 clean and needs num_candidates >= 2, got {num_candidates}"
+            )
         if self.method == "cem" and self.elites > num_candidates - 1:
-            raise ValueError(f"cem refits to elites={self.elites} of {num_candidates - 1} searched chunks: lower elites or raise num_candidates")
+            raise ValueError(
+                f"cem refits to elites={self.elites} of {num_candidates - 1} searched chunks: "
+                "lower elites or raise num_candidates"
+            )
         if any(not 0 <= d < action_dim for d in self.fixed_dims):
-            raise ValueError(f"fixed_dims {self.fixed_dims} must lie in [0, {action_dim}) (the actions are {action_dim}-D)")
+            raise ValueError(
+                f"fixed_dims {self.fixed_dims} must lie in [0, {action_dim}) (the actions are {action_dim}-D)"
+            )
 
 
 def action_bounds(normalizer: MinMaxNormalizer) -> tuple[torch.Tensor, torch.Tensor]:

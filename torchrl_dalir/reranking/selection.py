@@ -28,15 +28,20 @@ from torchrl_dalir.selection_config import RULES, SCORERS, SelectionConfig
 __all__ = ["RULES", "SCORERS", "SelectionConfig", "select"]
 
 
-def select(scores: torch.Tensor, config: SelectionConfig, generator: torch.Generator | None = None,
-           actions: torch.Tensor | None = None) -> torch.Tensor:
+def select(
+    scores: torch.Tensor,
+    config: SelectionConfig,
+    generator: torch.Generator | None = None,
+    actions: torch.Tensor | None = None,
+) -> torch.Tensor:
     """The index ``[B]`` of the candidate to execute, from member scores ``[B, E, K]`` (and, for
     ``trust``, the candidates' executed actions ``[B, K, k, A]``).
 
     Example:
         >>> scores = torch.tensor([[[0.1, 0.9, 0.5]]])
         >>> actions = torch.tensor([[[[0.0]], [[3.0]], [[0.5]]]])  # the mean is 7/6: candidate 1 lies furthest
-        >>> select(scores, SelectionConfig("argmax")).item(), select(scores, SelectionConfig("trust", fraction=0.67), actions=actions).item()
+        >>> (select(scores, SelectionConfig("argmax")).item(),
+        ...  select(scores, SelectionConfig("trust", fraction=0.67), actions=actions).item())
         (1, 2)
     """
     if scores.dim() != 3:
@@ -46,7 +51,10 @@ def select(scores: torch.Tensor, config: SelectionConfig, generator: torch.Gener
         return mean.argmax(-1)
     if config.rule == "trust":
         if actions is None or actions.shape[:2] != (scores.shape[0], scores.shape[-1]):  # [B, K]
-            raise ValueError(f"the trust rule needs the candidates' actions [batch, candidates, ...] for scores of shape {tuple(scores.shape)}")
+            raise ValueError(
+                "the trust rule needs the candidates' actions [batch, candidates, ...] "
+                f"for scores of shape {tuple(scores.shape)}"
+            )
         distance = (actions - actions.mean(1, keepdim=True)).flatten(2).norm(dim=-1)  # [B, K] from the candidates' mean
         kept = max(1, round(config.fraction * scores.shape[-1]))
         nearest = distance.topk(kept, dim=-1, largest=False).indices

@@ -59,8 +59,10 @@ def setup(device: str | torch.device = "cpu") -> torch.device:
     if device.type == "cuda":
         local = torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
         if device.index not in (None, local.index):
-            raise ValueError(f"device={device} on rank {rank()} under torchrun: each rank trains on cuda:<LOCAL_RANK> "
-                             f"(here {local}); pass device=cuda")
+            raise ValueError(
+                f"device={device} on rank {rank()} under torchrun: each rank trains on cuda:<LOCAL_RANK> "
+                f"(here {local}); pass device=cuda"
+            )
         device = local
         torch.cuda.set_device(device)
     if not dist.is_initialized():
@@ -86,8 +88,9 @@ def check_global_batch(name: str, value: int) -> None:
     """A ``ValueError`` naming the setting unless the global batch ``value`` splits evenly over the ranks."""
     ranks = world_size()
     if value % ranks:
-        raise ValueError(f"{name}={value} is the global batch and cannot be split over {ranks} processes: "
-                         f"use a multiple of {ranks}")
+        raise ValueError(
+            f"{name}={value} is the global batch and cannot be split over {ranks} processes: use a multiple of {ranks}"
+        )
 
 
 def shard(batch: TensorDictBase, dim: int = 0) -> TensorDictBase:

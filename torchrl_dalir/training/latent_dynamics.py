@@ -180,8 +180,8 @@ def compare_action_input(dataset: TrajectoryDataset, cfg: LatentDynamicsConfig, 
     """Trains the latent encoder and the world model with and without action input on ``dataset``'s training
     trajectories; returns their held-out latent MSEs (``with_action``, ``without_action``, ``no_change``) and the split.
 
-    Training checkpoints go to ``run_dir`` (``encoder.pt``, ``dynamics_with_action.pt``, ``dynamics_without_action.pt``);
-    a run that finds them resumes from them.
+    Training checkpoints go to ``run_dir`` (``encoder.pt``, ``dynamics_with_action.pt``,
+    ``dynamics_without_action.pt``); a run that finds them resumes from them.
 
     Example:
         >>> import tempfile
@@ -189,11 +189,11 @@ def compare_action_input(dataset: TrajectoryDataset, cfg: LatentDynamicsConfig, 
         >>> from torchrl_dalir.data import import_dp3_zarr, write_dp3_zarr
         >>> folder = Path(tempfile.mkdtemp())
         >>> rng = np.random.default_rng(0)
-        >>> episodes = [{"point_cloud": rng.random((30, 64, 6)), "state": rng.random((30, 2)), "action": rng.random((30, 2))}
-        ...             for _ in range(5)]
+        >>> episodes = [{"point_cloud": rng.random((30, 64, 6)), "state": rng.random((30, 2)),
+        ...              "action": rng.random((30, 2))} for _ in range(5)]
         >>> dataset = import_dp3_zarr(write_dp3_zarr(folder / "doc.zarr", episodes), folder / "dataset", num_points=32)
-        >>> cfg = LatentDynamicsConfig(encoder="random", point_hidden=[16], wm_steps=20, wm_hidden=16, wm_layers=1, wm_heads=2,
-        ...                            progress=False)
+        >>> cfg = LatentDynamicsConfig(encoder="random", point_hidden=[16], wm_steps=20, wm_hidden=16, wm_layers=1,
+        ...                            wm_heads=2, progress=False)
         >>> result = compare_action_input(dataset, cfg, folder / "run")
         >>> result["held_out_trajectories"], result["with_action"] != result["without_action"]
         ([4], True)

@@ -36,8 +36,9 @@ def wandb_mode(value: str | bool) -> str:
     return mode
 
 
-def make_logger(run_dir: str | Path, name: str, wandb: str | bool = "off", config: dict | None = None,
-                csv: bool = True) -> Callable[[dict, int], None]:
+def make_logger(
+    run_dir: str | Path, name: str, wandb: str | bool = "off", config: dict | None = None, csv: bool = True
+) -> Callable[[dict, int], None]:
     """A ``log(metrics, step)`` function writing CSV under ``run_dir / "logs"`` (unless not ``csv``)
     and, unless ``wandb`` is ``off`` (:func:`wandb_mode`), to a wandb run ``name`` of project
     ``torchrl_dalir`` saved under ``run_dir``, offline or online, with ``config`` as its
@@ -50,8 +51,15 @@ def make_logger(run_dir: str | Path, name: str, wandb: str | bool = "off", confi
     loggers = [CSVLogger(name, log_dir=str(run_dir / "logs"))] if csv else []
     if mode != "off":
         # mode= reaches wandb.init (TorchRL's offline=True would set WANDB_MODE for the whole process)
-        wandb_logger = WandbLogger(name, offline=False, save_dir=str(run_dir), project="torchrl_dalir",
-                                   log_env_packages=False, mode=mode, reinit="finish_previous")
+        wandb_logger = WandbLogger(
+            name,
+            offline=False,
+            save_dir=str(run_dir),
+            project="torchrl_dalir",
+            log_env_packages=False,
+            mode=mode,
+            reinit="finish_previous",
+        )
         if config is not None:
             wandb_logger.log_hparams(config)
         loggers.append(wandb_logger)
@@ -64,8 +72,9 @@ def make_logger(run_dir: str | Path, name: str, wandb: str | bool = "off", confi
     return log
 
 
-def log_results(run_dir: str | Path, name: str, wandb: str | bool, numbers: dict[str, float],
-                details: dict | None = None) -> None:
+def log_results(
+    run_dir: str | Path, name: str, wandb: str | bool, numbers: dict[str, float], details: dict | None = None
+) -> None:
     """Logs a finished stage's results to a wandb run ``name`` of their own (saved under
     ``run_dir``): ``numbers`` (success rates, p-values) at step 0, ``details`` (the chosen
     setting, the episodes) as the run's configuration. With ``wandb=off`` nothing: the stage's

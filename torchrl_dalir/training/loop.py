@@ -86,8 +86,10 @@ def data_parallel(loss_module: LossModule, params: list[nn.Parameter]) -> nn.Mod
     held = {id(p) for p in loss_module.parameters()}
     missing = sum(id(p) not in held for p in params)
     if missing:
-        raise ValueError(f"{missing} trained parameters of the model are not parameters of the loss module "
-                         f"{type(loss_module).__name__}: their gradients could not be averaged over the processes")
+        raise ValueError(
+            f"{missing} trained parameters of the model are not parameters of the loss module "
+            f"{type(loss_module).__name__}: their gradients could not be averaged over the processes"
+        )
     return DistributedDataParallel(loss_module)
 
 
@@ -154,11 +156,15 @@ def fit(
     if checkpoint_path.exists():
         try:
             state = safe_torch_load(checkpoint_path, "torchrl_dalir training checkpoint")
-            check_entries(state if isinstance(state, dict) else {}, checkpoint_path, RESUME_ENTRIES, "training checkpoint")
+            check_entries(
+                state if isinstance(state, dict) else {}, checkpoint_path, RESUME_ENTRIES, "training checkpoint"
+            )
         except UnsafeFileError:
             raise
         except ValueError as error:
-            raise ValueError(f"cannot resume training: {error}. To train from the start instead, delete {checkpoint_path}") from None
+            raise ValueError(
+                f"cannot resume training: {error}. To train from the start instead, delete {checkpoint_path}"
+            ) from None
         load_weights(model, state, "model", checkpoint_path)
         load_weights(ema, state, "ema", checkpoint_path)
         optimizer.load_state_dict(state["optimizer"])
@@ -209,8 +215,14 @@ def fit(
         if step % log_every == 0 or step == num_steps:
             losses = distributed.mean_over_ranks(dict(losses.items()))  # a collective: every rank takes part
             if log is not None and main:
-                log({**{k: v.item() for k, v in losses.items()}, "lr": schedule.get_last_lr()[0],
-                     "steps_per_s": (step - first_step) / (time.perf_counter() - start)}, step)
+                log(
+                    {
+                        **{k: v.item() for k, v in losses.items()},
+                        "lr": schedule.get_last_lr()[0],
+                        "steps_per_s": (step - first_step) / (time.perf_counter() - start),
+                    },
+                    step,
+                )
         if step % checkpoint_every == 0 or step == num_steps:
             checkpoint()
     bar.close()

@@ -40,7 +40,8 @@ class PolicyTrainingConfig:
 
     Example:
         >>> from torchrl_dalir.config import parse_config
-        >>> cfg = parse_config(PolicyTrainingConfig, ["preset=smoke", "task=reach"], PRESETS)  # defaults, preset, overrides
+        >>> # defaults, preset, overrides
+        >>> cfg = parse_config(PolicyTrainingConfig, ["preset=smoke", "task=reach"], PRESETS)
         >>> cfg.model.down_dims, cfg.num_steps, cfg.optim.lr, cfg.run_dir().as_posix()
         ([16, 32, 64], 30, 0.001, 'outputs/policies/reach/fm_seed0')
     """
@@ -69,12 +70,19 @@ class PolicyTrainingConfig:
         self.model.kind = self.policy  # the backbone is named once, by ``policy``
         if spec.suite == ADROIT and self.policy == "fm" and self.model.flow_prediction == "velocity":
             warnings.warn(
-                f"FM on {spec.name} with the velocity target: on Adroit's 24-28-D chunks it keeps the sampling noise after the "
-                "cpu budget (Door: 0 % success, docs/measurements.md); the protocol's Adroit FM predicts the clean chunk, "
-                "the default (flow_prediction=task)")  # one place: shown once
+                f"FM on {spec.name} with the velocity target: on Adroit's 24-28-D chunks it keeps the sampling noise "
+                "after the cpu budget (Door: 0 % success, docs/measurements.md); the protocol's Adroit FM predicts "
+                "the clean chunk, the default (flow_prediction=task)"
+            )  # one place: shown once
         check_choice("precision", self.precision, PRECISIONS)
         self.wandb = wandb_mode(self.wandb)
-        for name, minimum in (("batch_size", 1), ("epochs", 1), ("num_steps", 0), ("checkpoint_every", 1), ("log_every", 1)):
+        for name, minimum in (
+            ("batch_size", 1),
+            ("epochs", 1),
+            ("num_steps", 0),
+            ("checkpoint_every", 1),
+            ("log_every", 1),
+        ):
             check_at_least(name, getattr(self, name), minimum)
         distributed.check_global_batch("batch_size", self.batch_size)
 
@@ -84,7 +92,9 @@ class PolicyTrainingConfig:
         run is compared against."""
         if self.model.flow_prediction != BY_TASK:
             return self
-        return replace(self, model=replace(self.model, flow_prediction=PROTOCOL_FLOW_PREDICTION[get_task(self.task).suite]))
+        return replace(
+            self, model=replace(self.model, flow_prediction=PROTOCOL_FLOW_PREDICTION[get_task(self.task).suite])
+        )
 
     def run_dir(self) -> Path:
         return Path(self.out) / self.task / f"{self.policy}_seed{self.seed}"
@@ -106,7 +116,13 @@ PRESETS: dict[str, dict] = {
     },
     # Seconds, for tests.
     "smoke": {
-        "model": {"down_dims": [16, 32, 64], "point_hidden": [16, 32, 64], "ddim_steps": 2, "euler_steps": 2, "train_timesteps": 20},
+        "model": {
+            "down_dims": [16, 32, 64],
+            "point_hidden": [16, 32, 64],
+            "ddim_steps": 2,
+            "euler_steps": 2,
+            "train_timesteps": 20,
+        },
         "optim": {"lr": 1e-3, "warmup_steps": 2},
         "batch_size": 8,
         "num_steps": 30,
@@ -123,7 +139,9 @@ def _loss_module(policy: ChunkPolicy3D):
     if config.kind == "dp":
         return DiffusionLoss(policy)
     if config.flow_objective == "consistency":
-        return ConsistencyFlowMatchingLoss(policy, config.consistency_delta, config.consistency_segments, config.consistency_alpha)
+        return ConsistencyFlowMatchingLoss(
+            policy, config.consistency_delta, config.consistency_segments, config.consistency_alpha
+        )
     return FlowMatchingLoss(policy)
 
 

@@ -65,8 +65,14 @@ class RankingTrainingConfig:
 
 
 @torch.no_grad()
-def candidate_features(rows: TensorDict, policy, input: str = "state_chunk", action_normalizer: MinMaxNormalizer | None = None,
-                       encoder=None, world_model=None) -> torch.Tensor:
+def candidate_features(
+    rows: TensorDict,
+    policy,
+    input: str = "state_chunk",
+    action_normalizer: MinMaxNormalizer | None = None,
+    encoder=None,
+    world_model=None,
+) -> torch.Tensor:
     """What the scorer reads of each candidate of branched decisions ``rows``: ``[B, K, F]``."""
     cloud, agent_pos = rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]
     executed = rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]  # [B, K, k, A]
@@ -87,8 +93,14 @@ def _held_out(rows: TensorDict, fraction: float) -> torch.Tensor:
     return rows[RESET_SEED] >= cut
 
 
-def train_ranking_scorer(outcomes: BranchedOutcomes, policy, cfg: RankingTrainingConfig, encoder=None, world_model=None,
-                         progress_every: int = 0) -> tuple[nn.Module, dict]:
+def train_ranking_scorer(
+    outcomes: BranchedOutcomes,
+    policy,
+    cfg: RankingTrainingConfig,
+    encoder=None,
+    world_model=None,
+    progress_every: int = 0,
+) -> tuple[nn.Module, dict]:
     """Trains a scorer on the training episodes of ``outcomes`` and measures it on the held-out ones.
     Returns the scorer and its metrics: the losses at the start and end, and the within-decision AUC
     on the training and the held-out decisions that split (with their counts)."""
@@ -96,8 +108,13 @@ def train_ranking_scorer(outcomes: BranchedOutcomes, policy, cfg: RankingTrainin
     rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
     executed = rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]
     normalizer = MinMaxNormalizer(executed.shape[-1]).fit(executed)
-    table = TensorDict({CANDIDATE_FEATURES: candidate_features(rows, policy, cfg.input, normalizer, encoder, world_model),
-                        SUCCESS: rows[SUCCESS]}, [len(rows)])
+    table = TensorDict(
+        {
+            CANDIDATE_FEATURES: candidate_features(rows, policy, cfg.input, normalizer, encoder, world_model),
+            SUCCESS: rows[SUCCESS],
+        },
+        [len(rows)],
+    )
     held_out = _held_out(rows, cfg.held_out_fraction)
     train, test = table[~held_out], table[held_out]
     scorer = TaskCompletionScorer(table[CANDIDATE_FEATURES].shape[-1], hidden=cfg.hidden)
@@ -129,8 +146,16 @@ def train_ranking_scorer(outcomes: BranchedOutcomes, policy, cfg: RankingTrainin
             wins = part[SUCCESS].sum(-1)
             return int(((wins > 0) & (wins < part[SUCCESS].shape[-1])).sum())
 
-        metrics = {"config": asdict(cfg), "loss_start": first, "loss_end": last,
-                   "train_decisions": len(train), "train_split_decisions": splits(train), "train_auc": auc(train),
-                   "held_out_decisions": len(test), "held_out_split_decisions": splits(test), "held_out_auc": auc(test)}
+        metrics = {
+            "config": asdict(cfg),
+            "loss_start": first,
+            "loss_end": last,
+            "train_decisions": len(train),
+            "train_split_decisions": splits(train),
+            "train_auc": auc(train),
+            "held_out_decisions": len(test),
+            "held_out_split_decisions": splits(test),
+            "held_out_auc": auc(test),
+        }
     scorer.action_normalizer = normalizer
     return scorer, metrics

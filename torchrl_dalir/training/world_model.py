@@ -57,7 +57,9 @@ from torchrl_dalir.utils import weights_digest
 SCORER_TARGETS = {"completion": keys.COMPLETION_TARGET, "dense_reward": keys.DENSE_REWARD_TARGET}
 # Tasks whose simulator reward is no oracle: gymnasium-robotics' Door-v1 dense reward (since
 # 1.2.1) grows with the palm-to-handle distance, so it rewards moving away from the handle.
-MISLEADING_DENSE_REWARD = {"door": "its dense reward grows with the palm-to-handle distance (gymnasium-robotics >= 1.2.1)"}
+MISLEADING_DENSE_REWARD = {
+    "door": "its dense reward grows with the palm-to-handle distance (gymnasium-robotics >= 1.2.1)"
+}
 ENCODER_MODES = ("finetune", "frozen")
 
 
@@ -89,11 +91,14 @@ class WorldModelTrainingConfig:
     data: str = "outputs/data"  # the mixed data is read from <data>/<task>/<mixed_name>
     mixed_name: str = "mixed"
     extra_data: list[str] = field(default_factory=list)  # more datasets of <data>/<task>/ added to the mixed data
-    encoder: str = "finetune"  # finetune (the paper: trained with the scorer) | frozen (the policy's encoder, latents computed once)
+    # finetune (the paper: trained with the scorer) | frozen (the policy's encoder, latents computed once)
+    encoder: str = "finetune"
     policy_checkpoint: str = "outputs/policies/disassemble/fm_seed0/checkpoint.pt"
     out: str = "outputs/world_models"  # the run writes <out>/<task>/seed<seed>/
     held_out_fraction: float = 0.1
-    mixed_trajectories: int = 0  # train on this many of the training trajectories (0: all); the held-out set stays the same
+    mixed_trajectories: int = (
+        0  # train on this many of the training trajectories (0: all); the held-out set stays the same
+    )
     scorer_target: str = "completion"  # completion (sparse labels) | dense_reward (the oracle ablation)
     dense_reward_gamma: float = 0.99
     scorer_hidden: int = 256
@@ -109,12 +114,16 @@ class WorldModelTrainingConfig:
     wm_epochs: int = 100
     wm_steps: int = 0  # 0: derive from wm_epochs
     wm_optim: OptimConfig = field(default_factory=dynamics_optim)
-    ensemble_sources: list[str] = field(default_factory=list)  # train the ensemble on these sources only (e.g. [base_policy,exploration]); empty: all
+    ensemble_sources: list[str] = field(
+        default_factory=list
+    )  # train the ensemble on these sources only (e.g. [base_policy,exploration]); empty: all
     ensemble_members: int = 5
     ensemble_hidden: int = 256
     ensemble_batch_size: int = 256
     ensemble_steps: int = 3000  # cheap: the imagined latents are computed once
-    ensemble_optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-4, betas=(0.9, 0.999), weight_decay=1e-3, warmup_steps=0))
+    ensemble_optim: OptimConfig = field(
+        default_factory=lambda: OptimConfig(lr=3e-4, betas=(0.9, 0.999), weight_decay=1e-3, warmup_steps=0)
+    )
     precision: str = "auto"  # auto (bf16 autocast where the hardware runs it natively) | bf16 | fp32
     checkpoint_every: int = 500
     log_every: int = 50
@@ -125,13 +134,23 @@ class WorldModelTrainingConfig:
         get_task(self.task)  # an unknown name fails here, with the list of known ones
         check_choice("scorer_target", self.scorer_target, SCORER_TARGETS)
         if self.scorer_target == "dense_reward" and self.task in MISLEADING_DENSE_REWARD:
-            raise ValueError(f"scorer_target=dense_reward is no oracle on {self.task}: {MISLEADING_DENSE_REWARD[self.task]}; "
-                             "use the sparse labels (scorer_target=completion)")
+            raise ValueError(
+                f"scorer_target=dense_reward is no oracle on {self.task}: {MISLEADING_DENSE_REWARD[self.task]}; "
+                "use the sparse labels (scorer_target=completion)"
+            )
         check_choice("encoder", self.encoder, ENCODER_MODES)
         check_choice("precision", self.precision, PRECISIONS)
         self.wandb = wandb_mode(self.wandb)
-        for name in ("scorer_batch_size", "wm_batch_size", "ensemble_batch_size", "scorer_epochs", "wm_epochs", "ensemble_members",
-                     "checkpoint_every", "log_every"):
+        for name in (
+            "scorer_batch_size",
+            "wm_batch_size",
+            "ensemble_batch_size",
+            "scorer_epochs",
+            "wm_epochs",
+            "ensemble_members",
+            "checkpoint_every",
+            "log_every",
+        ):
             check_at_least(name, getattr(self, name), 1)
         for name in ("scorer_steps", "frozen_scorer_steps", "wm_steps", "ensemble_steps", "mixed_trajectories"):
             check_at_least(name, getattr(self, name), 0)
@@ -140,7 +159,7 @@ class WorldModelTrainingConfig:
 
     def variant(self) -> str:
         """What sets this run apart from the paper's: ``""``, or e.g. ``"_frozen+explore"`` or
-    ``"_frozen_ens-base_policy-exploration+explore"``."""
+        ``"_frozen_ens-base_policy-exploration+explore"``."""
         parts = [self.scorer_target] if self.scorer_target != "completion" else []
         parts += [self.encoder] if self.encoder != "finetune" else []
         parts += ["ens-" + "-".join(self.ensemble_sources)] if self.ensemble_sources else []
@@ -159,8 +178,22 @@ PRESETS: dict[str, dict] = {
     # paper's model takes ~0.6 s here).
     "cpu": {"encoder": "frozen", "scorer_steps": 1000, "wm_steps": 1500, "wm_batch_size": 256, "wm_hidden": 128},
     "smoke": {
-        "scorer_steps": 20, "scorer_batch_size": 16, "wm_steps": 20, "wm_batch_size": 16, "wm_hidden": 32, "wm_layers": 1,
-        "wm_heads": 2, "scorer_hidden": 32, "ensemble_members": 2, "ensemble_hidden": 16, "ensemble_steps": 20, "ensemble_batch_size": 16, "checkpoint_every": 10, "log_every": 10, "wandb": False, "held_out_fraction": 0.4,
+        "scorer_steps": 20,
+        "scorer_batch_size": 16,
+        "wm_steps": 20,
+        "wm_batch_size": 16,
+        "wm_hidden": 32,
+        "wm_layers": 1,
+        "wm_heads": 2,
+        "scorer_hidden": 32,
+        "ensemble_members": 2,
+        "ensemble_hidden": 16,
+        "ensemble_steps": 20,
+        "ensemble_batch_size": 16,
+        "checkpoint_every": 10,
+        "log_every": 10,
+        "wandb": False,
+        "held_out_fraction": 0.4,
         "precision": "fp32",  # the same numbers on every machine
     },
 }
@@ -195,8 +228,10 @@ def keep_trajectories(held: torch.Tensor, count: int, seed: int) -> torch.Tensor
     nested for growing ``count`` (the data-scale ablation, paper Table 3b); all for ``count=0``."""
     train = torch.nonzero(~held).squeeze(-1)
     if count > len(train):
-        raise ValueError(f"mixed_trajectories={count} but only {len(train)} training trajectories exist "
-                         f"({int(held.sum())} are held out): collect more mixed data or ask for fewer")
+        raise ValueError(
+            f"mixed_trajectories={count} but only {len(train)} training trajectories exist "
+            f"({int(held.sum())} are held out): collect more mixed data or ask for fewer"
+        )
     keep = ~held
     if count:
         order = train[torch.randperm(len(train), generator=torch.Generator().manual_seed(seed))]
@@ -217,7 +252,9 @@ def encode_rows(encoder: LatentEncoder, rows: TensorDict, batch_size: int = 1024
     latents = torch.empty(len(rows), encoder.latent_dim)
     for start in range(0, len(rows), batch_size):
         chunk = rows[start : start + batch_size]
-        latents[start : start + len(chunk)] = encoder(chunk[keys.POINT_CLOUD].to(device), chunk[keys.AGENT_POS].to(device))
+        latents[start : start + len(chunk)] = encoder(
+            chunk[keys.POINT_CLOUD].to(device), chunk[keys.AGENT_POS].to(device)
+        )
     return latents
 
 
@@ -233,7 +270,9 @@ def _scorer_metrics(probabilities: torch.Tensor, targets: torch.Tensor, bins: in
     return {"brier": ((probabilities - targets) ** 2).mean().item(), "calibration_error": float(ece)}
 
 
-def frozen_policy(cfg: WorldModelTrainingConfig, policy: ChunkPolicy | str | Path | None = None) -> tuple[ChunkPolicy, WorldModelTrainingConfig]:
+def frozen_policy(
+    cfg: WorldModelTrainingConfig, policy: ChunkPolicy | str | Path | None = None
+) -> tuple[ChunkPolicy, WorldModelTrainingConfig]:
     """The policy a world model is trained on top of, and ``cfg`` with its ``policy_checkpoint`` set to
     where it came from: loaded from ``cfg.policy_checkpoint`` (``policy=None``) or from a path, or a
     policy object (any :class:`~torchrl_dalir.modules.ChunkPolicy`; recorded as its ``checkpoint`` if
@@ -246,7 +285,10 @@ def frozen_policy(cfg: WorldModelTrainingConfig, policy: ChunkPolicy | str | Pat
     task = getattr(policy, "task", None)
     if task is not None and task != cfg.task:
         raise ValueError(f"the policy was trained on task {task!r}; this world model is for {cfg.task!r}")
-    source = getattr(policy, "checkpoint", None) or f"{type(policy).__name__} object (weights digest {weights_digest(policy)[:12]})"
+    source = (
+        getattr(policy, "checkpoint", None)
+        or f"{type(policy).__name__} object (weights digest {weights_digest(policy)[:12]})"
+    )
     return policy, replace(cfg, policy_checkpoint=str(source))
 
 
@@ -274,7 +316,9 @@ def train_world_model(cfg: WorldModelTrainingConfig, policy: ChunkPolicy | str |
     policy, cfg = frozen_policy(cfg, policy)
     mixed = training_data(cfg)
     rows = mixed.rows
-    ensemble_sources = source_mask(mixed, cfg.ensemble_sources) if cfg.ensemble_sources else None  # fails before any training
+    ensemble_sources = (
+        source_mask(mixed, cfg.ensemble_sources) if cfg.ensemble_sources else None
+    )  # fails before any training
     target_key = SCORER_TARGETS[cfg.scorer_target]
     if cfg.scorer_target == "dense_reward":  # an in-memory target next to the memory-mapped rows
         rows = TensorDict(dict(rows.items()), batch_size=rows.batch_size)
@@ -284,7 +328,10 @@ def train_world_model(cfg: WorldModelTrainingConfig, policy: ChunkPolicy | str |
     kept = keep_trajectories(held, cfg.mixed_trajectories, cfg.seed)
     train_rows = torch.nonzero(kept[rows[keys.TRAJECTORY_ID]]).squeeze(-1)
     if ensemble_sources is not None and not ensemble_sources[rows[keys.SOURCE][train_rows]].any():
-        raise ValueError(f"no training trajectory of the sources {cfg.ensemble_sources} (all held out?): add data of them or name others")
+        raise ValueError(
+            f"no training trajectory of the sources {cfg.ensemble_sources} (all held out?): "
+            "add data of them or name others"
+        )
     logger = make_logger(run_dir, f"{cfg.task}_world_model_seed{cfg.seed}", wandb=cfg.wandb, config=config_dict(cfg))
     autocast = autocast_dtype(cfg.precision, device)
 
@@ -292,43 +339,97 @@ def train_world_model(cfg: WorldModelTrainingConfig, policy: ChunkPolicy | str |
         """Trains one stage on random batches ``[*batch_shape]`` of ``data[train_index]`` (split over
         torchrun's ranks along the last dimension); resumes from ``<name>.pt``."""
         return fit(
-            loss_module, model, lambda g: data[train_index[torch.randint(len(train_index), batch_shape, generator=g)]],
-            steps, optim, run_dir / f"{name}.pt", lambda ema: {}, seed=cfg.seed, checkpoint_every=cfg.checkpoint_every,
-            log=lambda m, s: logger({f"{name}/{k}": v for k, v in m.items()}, s), log_every=cfg.log_every,
-            autocast_dtype=dtype, progress=cfg.progress, shard_dim=len(batch_shape) - 1,
+            loss_module,
+            model,
+            lambda g: data[train_index[torch.randint(len(train_index), batch_shape, generator=g)]],
+            steps,
+            optim,
+            run_dir / f"{name}.pt",
+            lambda ema: {},
+            seed=cfg.seed,
+            checkpoint_every=cfg.checkpoint_every,
+            log=lambda m, s: logger({f"{name}/{k}": v for k, v in m.items()}, s),
+            log_every=cfg.log_every,
+            autocast_dtype=dtype,
+            progress=cfg.progress,
+            shard_dim=len(batch_shape) - 1,
         ).module
 
     # Stage 1: latent encoder + task-completion scorer (or the scorer alone on frozen latents).
     if all(hasattr(policy, name) for name in POLICY_ENCODERS):
         encoder = LatentEncoder.from_policy(policy).to(device)
     elif cfg.encoder == "frozen":
-        raise ValueError(f"encoder=frozen keeps the policy's own encoders, and {type(policy).__name__} has none to copy "
-                         f"({', '.join(POLICY_ENCODERS)}): use encoder=finetune, which trains a new encoder with the scorer")
+        raise ValueError(
+            f"encoder=frozen keeps the policy's own encoders, and {type(policy).__name__} has none to copy "
+            f"({', '.join(POLICY_ENCODERS)}): use encoder=finetune, which trains a new encoder with the scorer"
+        )
     else:  # a policy of another design: a new encoder of DP3's architecture, trained with the scorer
         encoder = LatentEncoder.fresh(rows[keys.AGENT_POS].shape[-1])
-        encoder = encoder.fit_normalizers(rows[keys.POINT_CLOUD][train_rows], rows[keys.AGENT_POS][train_rows]).to(device)
+        encoder = encoder.fit_normalizers(rows[keys.POINT_CLOUD][train_rows], rows[keys.AGENT_POS][train_rows]).to(
+            device
+        )
     scorer = TaskCompletionScorer(encoder.latent_dim, cfg.scorer_hidden).to(device)
     epoch_steps = cfg.scorer_epochs * -(-len(train_rows) // cfg.scorer_batch_size)
     if cfg.encoder == "finetune":
         pair = nn.ModuleDict({"encoder": encoder, "scorer": scorer})
-        ema_pair = train_stage(TaskCompletionLoss(encoder, scorer, target_key), pair, rows, train_rows, (cfg.scorer_batch_size,),
-                               cfg.scorer_steps or epoch_steps, cfg.scorer_optim, "scorer", autocast)
+        ema_pair = train_stage(
+            TaskCompletionLoss(encoder, scorer, target_key),
+            pair,
+            rows,
+            train_rows,
+            (cfg.scorer_batch_size,),
+            cfg.scorer_steps or epoch_steps,
+            cfg.scorer_optim,
+            "scorer",
+            autocast,
+        )
         encoder, scorer = ema_pair["encoder"].eval(), ema_pair["scorer"].eval()
     encoder.eval().requires_grad_(False)
     latents = encode_rows(encoder, rows, device=device)
     if cfg.encoder == "frozen":
         table = TensorDict({LATENT: latents, target_key: rows[target_key]}, [len(rows)])
-        scorer = train_stage(TaskCompletionLoss(None, scorer, target_key), scorer, table, train_rows, (cfg.scorer_batch_size,),
-                             cfg.frozen_scorer_steps or epoch_steps, cfg.scorer_optim, "scorer").eval()
+        scorer = train_stage(
+            TaskCompletionLoss(None, scorer, target_key),
+            scorer,
+            table,
+            train_rows,
+            (cfg.scorer_batch_size,),
+            cfg.frozen_scorer_steps or epoch_steps,
+            cfg.scorer_optim,
+            "scorer",
+        ).eval()
 
     # Stage 2: world model on latents of the frozen encoder.
     latent_rows = TensorDict(
-        {LATENT: latents, **{k: rows[k] for k in (keys.ACTION, keys.IS_FINAL, keys.TRAJECTORY_ID, keys.STEP, keys.COMPLETION_TARGET, target_key, keys.TERMINAL_LABEL, keys.QUALITY)}},
+        {
+            LATENT: latents,
+            **{
+                k: rows[k]
+                for k in (
+                    keys.ACTION,
+                    keys.IS_FINAL,
+                    keys.TRAJECTORY_ID,
+                    keys.STEP,
+                    keys.COMPLETION_TARGET,
+                    target_key,
+                    keys.TERMINAL_LABEL,
+                    keys.QUALITY,
+                )
+            },
+        },
         batch_size=[len(rows)],
     )
     k = policy.action_steps
-    future_keys = (LATENT,) if target_key == keys.COMPLETION_TARGET else (LATENT, target_key)  # the ensemble's target at t + k
-    windows = TrajectoryWindows(TrajectoryDataset(mixed.root, mixed.meta, latent_rows), obs_steps=1, horizon=k, future_offset=k, observation_keys=future_keys)
+    future_keys = (
+        (LATENT,) if target_key == keys.COMPLETION_TARGET else (LATENT, target_key)
+    )  # the ensemble's target at t + k
+    windows = TrajectoryWindows(
+        TrajectoryDataset(mixed.root, mixed.meta, latent_rows),
+        obs_steps=1,
+        horizon=k,
+        future_offset=k,
+        observation_keys=future_keys,
+    )
     anchor_trajectories = windows.dataset.rows[keys.TRAJECTORY_ID][windows.anchors]
     held_anchor = held[anchor_trajectories]
     train_anchors = torch.nonzero(kept[anchor_trajectories]).squeeze(-1)
@@ -343,27 +444,66 @@ def train_world_model(cfg: WorldModelTrainingConfig, policy: ChunkPolicy | str |
     world_model.to(device)
     wm_steps = cfg.wm_steps or cfg.wm_epochs * -(-len(train_anchors) // cfg.wm_batch_size)
     train_windows = wm_batch(train_anchors)  # small (latents and actions only): gathered once
-    world_model = train_stage(LatentDynamicsLoss(world_model), world_model, train_windows, torch.arange(len(train_windows)), (cfg.wm_batch_size,), wm_steps, cfg.wm_optim, "dynamics").eval()
+    world_model = train_stage(
+        LatentDynamicsLoss(world_model),
+        world_model,
+        train_windows,
+        torch.arange(len(train_windows)),
+        (cfg.wm_batch_size,),
+        wm_steps,
+        cfg.wm_optim,
+        "dynamics",
+    ).eval()
 
     # Stage 3: the scorer ensemble on imagined latents of the recorded chunks, against the
     # target at t + k (each member on its own random batches); with ``ensemble_sources``, only
     # the chunks of those sources (e.g. the base policy's own rollouts: its outcomes from there on).
-    imagined = TensorDict({IMAGINED_LATENT: imagine_windows(world_model, train_windows), keys.FUTURE: train_windows[keys.FUTURE]}, [len(train_windows)])
+    imagined = TensorDict(
+        {IMAGINED_LATENT: imagine_windows(world_model, train_windows), keys.FUTURE: train_windows[keys.FUTURE]},
+        [len(train_windows)],
+    )
     ensemble_index = torch.arange(len(imagined))
     if ensemble_sources is not None:
         ensemble_index = torch.nonzero(ensemble_sources[rows[keys.SOURCE][windows.anchors[train_anchors]]]).squeeze(-1)
     ensemble = ScorerEnsemble(encoder.latent_dim, cfg.ensemble_hidden, cfg.ensemble_members).to(device)
     ensemble_loss = ImaginedCompletionLoss(ensemble)
     ensemble_loss.set_keys(target=(keys.FUTURE, target_key))
-    ensemble = train_stage(ensemble_loss, ensemble, imagined, ensemble_index, (cfg.ensemble_members, cfg.ensemble_batch_size),
-                           cfg.ensemble_steps, cfg.ensemble_optim, "ensemble").eval()
+    ensemble = train_stage(
+        ensemble_loss,
+        ensemble,
+        imagined,
+        ensemble_index,
+        (cfg.ensemble_members, cfg.ensemble_batch_size),
+        cfg.ensemble_steps,
+        cfg.ensemble_optim,
+        "ensemble",
+    ).eval()
 
     if not distributed.is_main():
         distributed.barrier()  # until rank 0 has written the checkpoint
         return final
-    encoder, scorer, world_model, ensemble = encoder.cpu(), scorer.cpu(), world_model.cpu(), ensemble.cpu()  # metrics and checkpoint on the CPU
-    metrics = held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, torch.nonzero(held_anchor).squeeze(-1), wm_batch, target_key)
-    metrics.update(held_out_imagined_metrics(scorer, ensemble, world_model, wm_batch(torch.nonzero(held_anchor).squeeze(-1)), target_key))
+    encoder, scorer, world_model, ensemble = (
+        encoder.cpu(),
+        scorer.cpu(),
+        world_model.cpu(),
+        ensemble.cpu(),
+    )  # metrics and checkpoint on the CPU
+    metrics = held_out_metrics(
+        encoder,
+        scorer,
+        world_model,
+        latent_rows,
+        held_rows,
+        windows,
+        torch.nonzero(held_anchor).squeeze(-1),
+        wm_batch,
+        target_key,
+    )
+    metrics.update(
+        held_out_imagined_metrics(
+            scorer, ensemble, world_model, wm_batch(torch.nonzero(held_anchor).squeeze(-1)), target_key
+        )
+    )
     metrics["ensemble_windows"] = len(ensemble_index)
     logger({f"held_out/{k}": v for k, v in metrics.items()}, wm_steps)
     save_world_model(
@@ -395,7 +535,17 @@ def train_world_model(cfg: WorldModelTrainingConfig, policy: ChunkPolicy | str |
 
 
 @torch.no_grad()
-def held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windows, held_anchors, wm_batch, target_key=keys.COMPLETION_TARGET) -> dict:
+def held_out_metrics(
+    encoder,
+    scorer,
+    world_model,
+    latent_rows,
+    held_rows,
+    windows,
+    held_anchors,
+    wm_batch,
+    target_key=keys.COMPLETION_TARGET,
+) -> dict:
     """Scorer Brier score and calibration error against its targets on held-out rows; world-model
     MSE on held-out windows next to the "no change" predictor."""
     latents = latent_rows[LATENT][held_rows]
@@ -414,10 +564,12 @@ def held_out_metrics(encoder, scorer, world_model, latent_rows, held_rows, windo
 def imagine_windows(world_model: LatentWorldModel, windows: TensorDict, batch_size: int = 4096) -> torch.Tensor:
     """``s_hat_{t+k}`` of every window's recorded chunk, ``[W, L]``."""
     device = next(world_model.parameters()).device
-    return torch.cat([
-        world_model.imagine(part[LATENT].to(device), part[keys.ACTION_CHUNK].to(device)).cpu()
-        for part in windows.split(batch_size)
-    ])
+    return torch.cat(
+        [
+            world_model.imagine(part[LATENT].to(device), part[keys.ACTION_CHUNK].to(device)).cpu()
+            for part in windows.split(batch_size)
+        ]
+    )
 
 
 @torch.no_grad()
@@ -431,7 +583,9 @@ def held_out_imagined_metrics(scorer, ensemble, world_model, batch, target_key=k
     state = _scorer_metrics(torch.sigmoid(scorer(imagined)), target)
     mean = _scorer_metrics(members.mean(0), target)
     return {
-        "imagined_brier_state_scorer": state["brier"], "imagined_calibration_error_state_scorer": state["calibration_error"],
-        "imagined_brier_ensemble": mean["brier"], "imagined_calibration_error_ensemble": mean["calibration_error"],
+        "imagined_brier_state_scorer": state["brier"],
+        "imagined_calibration_error_state_scorer": state["calibration_error"],
+        "imagined_brier_ensemble": mean["brier"],
+        "imagined_calibration_error_ensemble": mean["calibration_error"],
         "ensemble_std": members.std(0, correction=0).mean().item(),
     }
