@@ -141,3 +141,44 @@ def test_script_collects_trains_both_variants_and_reruns_from_the_stored_data(tr
     assert json.dumps(again["variants"]) == json.dumps(first["variants"])
     with pytest.raises(ValueError, match="candidates"):
         main([*argv, "generator=dropuot"])
+
+
+def test_actor_selects_by_the_chunk_critic_and_its_checkpoint_reloads_identical(tmp_path):
+    from torchrl_dalir import RerankingActor
+    from torchrl_dalir.checkpoints import load_chunk_critic, save_chunk_critic
+    from torchrl_dalir.modules import ChunkCritic, LatentEncoder, LatentWorldModel
+    from torchrl_dalir.reranking import SelectionConfig
+
+    policy = _policy()
+    encoder = LatentEncoder.from_policy(policy)
+    parts = (
+        encoder,
+        LatentWorldModel(encoder.latent_dim, 4, 8, hidden=16, layers=1, heads=2),
+        TaskCompletionScorer(encoder.latent_dim, hidden=16),
+    )
+    critic = ChunkCritic(policy.encode(torch.rand(1, 2, 40, 3), torch.rand(1, 2, 4)).shape[-1], 4, 8, hidden=16)
+    critic.action_normalizer.fit(torch.rand(20, 4) * 2 - 1)
+    with pytest.raises(ValueError, match="needs a chunk critic"):
+        RerankingActor(policy, *parts, num_candidates=6, selection=SelectionConfig("argmax", "critic"))
+    dalir = RerankingActor(
+        policy, *parts, num_candidates=6, critic=critic, selection=SelectionConfig("argmax", "critic")
+    )
+    observation = TensorDict(point_cloud=torch.rand(2, 2, 40, 3), agent_pos=torch.rand(2, 2, 4), batch_size=[2])
+    decision = dalir(observation.clone())
+    dalir.reset()
+    chunks = dalir.sample_candidates(observation["point_cloud"], observation["agent_pos"])
+    logits = critic(policy.encode(observation["point_cloud"], observation["agent_pos"]), chunks[:, :, 1:9])
+    assert torch.equal(decision["dalir", "chosen_candidate"], logits.argmax(-1))
+    assert torch.allclose(decision["dalir", "candidate_scores"], torch.sigmoid(logits))
+
+    save_chunk_critic(tmp_path / "critic.pt", critic, policy, {"held_out_auc": 0.5})
+    loaded = load_chunk_critic(tmp_path / "critic.pt", policy=policy)
+    assert loaded.metrics == {"held_out_auc": 0.5}
+    assert all(torch.equal(a, b) for a, b in zip(loaded.state_dict().values(), critic.state_dict().values()))
+    with pytest.raises(ValueError, match="another policy"):
+        load_chunk_critic(
+            tmp_path / "critic.pt",
+            policy=make_policy(
+                PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4
+            ),
+        )

@@ -250,6 +250,10 @@ def test_branched_stage_collects_ranks_and_is_skipped_next_time(tmp_path, monkey
     assert meta["complete"] and (meta["candidates"], meta["num_candidates"], meta["seed"]) == ("dropout", 2, 10_000_000)
     ranking = json.loads((folder / "ranking.json").read_text())
     assert (ranking["train_decisions"], ranking["held_out_decisions"]) == (1, 1)  # decision 0 of each episode
+    from torchrl_dalir.checkpoints import load_chunk_critic, load_policy
+
+    policy = load_policy(tmp_path / "policies" / "reach" / "fm_seed0" / "checkpoint.pt")
+    assert load_chunk_critic(folder / "critic.pt", policy=policy).metrics == ranking
     assert not (tmp_path / "world_models").exists()  # stopped after the branched stage
     capsys.readouterr()
     run_example("train_dp3_wm.py", args, monkeypatch)

@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 from torchrl_dalir.config import check_choice
 
 RULES = ("argmax", "pessimistic", "softmax", "margin", "trust")
-SCORERS = ("state", "ensemble")
+SCORERS = ("state", "ensemble", "critic")
 
 
 @dataclass
@@ -31,7 +31,9 @@ class SelectionConfig:
         rule: one of :data:`RULES`.
         scorer: ``state`` (the paper's scorer, trained on encoded real observations, applied to
             the imagined latent) or ``ensemble`` (the scorer ensemble trained on imagined latents
-            of recorded chunks, see :class:`~torchrl_dalir.modules.ScorerEnsemble`).
+            of recorded chunks, see :class:`~torchrl_dalir.modules.ScorerEnsemble`) or ``critic``
+            (a :class:`~torchrl_dalir.modules.ChunkCritic` of the state and the chunk, trained on branched
+            outcomes; no world model involved).
         k: pessimism, in ensemble standard deviations (``pessimistic``, ``margin``).
         temperature: the softmax temperature, in probability units (``softmax``).
         margin: the advantage over the clean candidate needed to leave it (``margin``).

@@ -4,6 +4,7 @@ Training writes them and inference reads them, so neither depends on the other: 
 :class:`~torchrl_dalir.reranking.RerankingActor` is built from checkpoints without the training code.
 """
 
+from torchrl_dalir.checkpoints.chunk_critic import CRITIC_ENTRIES, load_chunk_critic, save_chunk_critic
 from torchrl_dalir.checkpoints.files import (
     UnsafeFileError,
     check_entries,
@@ -24,6 +25,7 @@ from torchrl_dalir.checkpoints.world_model import (
 )
 
 __all__ = [
+    "CRITIC_ENTRIES",
     "POLICY_ENTRIES",
     "UnsafeFileError",
     "WORLD_MODEL_ENTRIES",
@@ -31,12 +33,14 @@ __all__ = [
     "check_entries",
     "check_trained_on",
     "load_checkpoint",
+    "load_chunk_critic",
     "load_policy",
     "load_weights",
     "load_world_model",
     "policy_entries",
     "safe_torch_load",
     "save_checkpoint",
+    "save_chunk_critic",
     "save_world_model",
     "store_selection",
     "training_finished",

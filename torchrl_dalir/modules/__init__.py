@@ -1,5 +1,6 @@
 """Networks: observation encoders, the conditional U-Net, and the base 3D policies."""
 
+from torchrl_dalir.modules.chunk_critic import ChunkCritic
 from torchrl_dalir.modules.config import PolicyConfig
 from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
@@ -18,6 +19,7 @@ from torchrl_dalir.modules.world_model import (
 )
 
 __all__ = [
+    "ChunkCritic",
     "ChunkPolicy",
     "ChunkPolicy3D",
     "ConditionalUnet1D",

@@ -17,7 +17,14 @@ import time
 from functools import partial
 from pathlib import Path
 
-from torchrl_dalir.checkpoints import load_policy, load_world_model, safe_torch_load, store_selection, training_finished
+from torchrl_dalir.checkpoints import (
+    load_policy,
+    load_world_model,
+    safe_torch_load,
+    save_chunk_critic,
+    store_selection,
+    training_finished,
+)
 from torchrl_dalir.config import config_dict
 from torchrl_dalir.data import Source, collect
 from torchrl_dalir.data.branched import collect_branched
@@ -259,7 +266,9 @@ def trained_as_asked(name: str, config, done) -> callable:
 
 def branch_and_rank(cfg: PipelineConfig, policy_path: Path) -> None:
     """The branched stage: collects (or resumes) the branched outcomes, then writes ``ranking.json`` beside
-    them, the held-out within-decision AUC of a scorer trained on them (with two episodes or more)."""
+    them, the held-out within-decision AUC of a chunk critic trained on them, and the critic (``critic.pt``, for
+    ``RerankingActor(..., critic=load_chunk_critic(path), selection=SelectionConfig(scorer="critic"))``), with two
+    episodes or more."""
     policy = load_policy(policy_path, cfg.device)
     reranking = cfg.reranking().updated(num_candidates=cfg.branched_candidates)
     seed = BRANCHED_SEED_BASE + 1000 * cfg.seed
@@ -274,7 +283,8 @@ def branch_and_rank(cfg: PipelineConfig, policy_path: Path) -> None:
         device=cfg.device,
     )
     if cfg.branched_episodes >= 2:
-        _, metrics = train_ranking_scorer(outcomes, policy, RankingTrainingConfig(seed=cfg.seed))
+        critic, metrics = train_ranking_scorer(outcomes, policy, RankingTrainingConfig(seed=cfg.seed))
+        save_chunk_critic(cfg.branched_dir() / "critic.pt", critic, policy, metrics)
         atomic_write(cfg.branched_dir() / "ranking.json", json.dumps(metrics, indent=1))
         print(
             f"[branched] {outcomes}: held-out within-decision AUC {metrics['held_out_auc']:.3f} "

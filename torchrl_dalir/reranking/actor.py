@@ -14,6 +14,7 @@ from torch import nn
 from torchrl_dalir import keys
 from torchrl_dalir.checkpoints.policy import load_policy
 from torchrl_dalir.checkpoints.world_model import load_world_model
+from torchrl_dalir.modules.chunk_critic import ChunkCritic
 from torchrl_dalir.modules.policies import check_finite_output
 from torchrl_dalir.modules.policy_interface import ChunkPolicy, check_chunk_policy, executed, read_observation
 from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, ScorerEnsemble, TaskCompletionScorer
@@ -62,6 +63,8 @@ class RerankingActor(TensorDictModuleBase):
         seed: seeds candidate perturbations and policy noise, so decisions are reproducible.
         ensemble: the scorer ensemble trained on imagined latents (needed by
             ``selection.scorer="ensemble"``).
+        critic: a :class:`~torchrl_dalir.modules.ChunkCritic` trained on branched outcomes (needed by
+            ``selection.scorer="critic"``, which scores the chunks from the state, without imagination).
         selection: the selection rule (default: the paper's arg-max of the state scorer).
             :meth:`from_checkpoints` uses the rule stored in the world-model checkpoint by
             ``examples/calibrate_selection.py`` unless one is passed.
@@ -109,6 +112,7 @@ class RerankingActor(TensorDictModuleBase):
         candidates=None,
         seed: int = 0,
         ensemble: ScorerEnsemble | None = None,
+        critic: ChunkCritic | None = None,
         selection: SelectionConfig | None = None,
         search: SearchConfig | None = None,
         common_noise: bool | None = None,
@@ -143,6 +147,12 @@ class RerankingActor(TensorDictModuleBase):
                 f"selection {self.selection.name} needs a scorer ensemble; this world model has none "
                 "(checkpoints written before version 0.2.0 have none: retrain the world-model stage)"
             )
+        if self.selection.scorer == "critic" and critic is None:
+            raise ValueError(
+                f"selection {self.selection.name} needs a chunk critic: pass critic=load_chunk_critic(<critic.pt>) "
+                "(the main job's branched stage trains one)"
+            )
+        self.critic = critic.eval().requires_grad_(False) if critic is not None else None
         self.search = config.search
         self.search.check(config.num_candidates, policy.action_dim)
         self.policy, self.encoder, self.world_model, self.scorer, self.ensemble = (
@@ -221,7 +231,11 @@ class RerankingActor(TensorDictModuleBase):
     def member_scores(self, cloud: torch.Tensor, agent_pos: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
         """Completion probabilities ``[B, E, K]`` of chunks ``[B, K, H, A]`` by each of the ``E``
         members of the selection's scorer (``E = 1`` for the state scorer)."""
-        members = self._probabilities(self.imagine(cloud, agent_pos, chunks))
+        if self.selection.scorer == "critic":  # Q of the chunk from the state: no imagination
+            members = torch.sigmoid(self.critic(self.policy.encode(cloud, agent_pos), chunks[..., self.executed, :]))
+            members = members.unsqueeze(1)
+        else:
+            members = self._probabilities(self.imagine(cloud, agent_pos, chunks))
         check_finite_output(
             members,
             "DALI-R's candidate_scores",
@@ -235,6 +249,9 @@ class RerankingActor(TensorDictModuleBase):
         """The score an action-space search maximises at observations ``[B, To, ...]``: a function
         from executed actions ``[B, N, k, A]`` (env units) to the members' mean completion
         probability ``[B, N]``, differentiable in the actions (the current latent is encoded once)."""
+        if self.selection.scorer == "critic":
+            cond = self.policy.encode(cloud, agent_pos)
+            return lambda executed: torch.sigmoid(self.critic(cond, executed))
         latent = self.encoder(cloud[:, -1], agent_pos[:, -1])
         return lambda executed: self._probabilities(self._imagine_executed(latent, executed)).mean(1)
 

@@ -25,8 +25,8 @@ from torchrl_dalir import keys
 from torchrl_dalir.config import check_at_least, check_choice
 from torchrl_dalir.data.branched import RESET_SEED, SUCCESS, BranchedOutcomes
 from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
+from torchrl_dalir.modules.chunk_critic import ChunkCritic
 from torchrl_dalir.modules.config import executed_slice
-from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 from torchrl_dalir.modules.world_model import TaskCompletionScorer
 from torchrl_dalir.objectives.within_state_ranking import CANDIDATE_FEATURES, WithinStateRankingLoss
 
@@ -69,20 +69,19 @@ def candidate_features(
     rows: TensorDict,
     policy,
     input: str = "state_chunk",
-    action_normalizer: MinMaxNormalizer | None = None,
+    critic: ChunkCritic | None = None,
     encoder=None,
     world_model=None,
 ) -> torch.Tensor:
-    """What the scorer reads of each candidate of branched decisions ``rows``: ``[B, K, F]``."""
+    """What the scorer reads of each candidate of branched decisions ``rows``: ``[B, K, F]`` (``state_chunk``:
+    ``critic``'s features of the policy's condition and the executed actions; ``imagined``: the imagined latent)."""
     cloud, agent_pos = rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]
     executed = rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]  # [B, K, k, A]
-    num_candidates = executed.shape[1]
     if input == "state_chunk":
-        state = policy.encode(cloud, agent_pos).unsqueeze(1).expand(-1, num_candidates, -1)
-        return torch.cat([state, action_normalizer(executed).flatten(-2)], -1)
+        return critic.features(policy.encode(cloud, agent_pos), executed)
     if encoder is None or world_model is None:
         raise ValueError("input=imagined needs the world model and its latent encoder")
-    latent = encoder(cloud[:, -1], agent_pos[:, -1]).unsqueeze(1).expand(-1, num_candidates, -1)
+    latent = encoder(cloud[:, -1], agent_pos[:, -1]).unsqueeze(1).expand(-1, executed.shape[1], -1)
     return world_model.imagine(latent, executed)
 
 
@@ -107,17 +106,16 @@ def train_ranking_scorer(
     torch.manual_seed(cfg.seed)
     rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
     executed = rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]
-    normalizer = MinMaxNormalizer(executed.shape[-1]).fit(executed)
-    table = TensorDict(
-        {
-            CANDIDATE_FEATURES: candidate_features(rows, policy, cfg.input, normalizer, encoder, world_model),
-            SUCCESS: rows[SUCCESS],
-        },
-        [len(rows)],
-    )
+    critic = None
+    if cfg.input == "state_chunk":
+        cond_dim = policy.encode(rows[keys.POINT_CLOUD][:1], rows[keys.AGENT_POS][:1]).shape[-1]
+        critic = ChunkCritic(cond_dim, policy.action_dim, policy.action_steps, hidden=cfg.hidden)
+        critic.action_normalizer.fit(executed)
+    features = candidate_features(rows, policy, cfg.input, critic, encoder, world_model)
+    table = TensorDict({CANDIDATE_FEATURES: features, SUCCESS: rows[SUCCESS]}, [len(rows)])
     held_out = _held_out(rows, cfg.held_out_fraction)
     train, test = table[~held_out], table[held_out]
-    scorer = TaskCompletionScorer(table[CANDIDATE_FEATURES].shape[-1], hidden=cfg.hidden)
+    scorer = critic.scorer if critic is not None else TaskCompletionScorer(features.shape[-1], hidden=cfg.hidden)
     loss_module = WithinStateRankingLoss(scorer, cfg.outcome_weight if cfg.ranking else 1.0)
     optimizer = torch.optim.AdamW(scorer.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     generator = torch.Generator().manual_seed(cfg.seed)
@@ -157,5 +155,4 @@ def train_ranking_scorer(
             "held_out_split_decisions": splits(test),
             "held_out_auc": auc(test),
         }
-    scorer.action_normalizer = normalizer
-    return scorer, metrics
+    return (critic if critic is not None else scorer).eval(), metrics
