@@ -17,7 +17,7 @@ from torchrl_dalir.evaluation.candidate_ceiling import (
     summarize_ceiling,
 )
 from torchrl_dalir.reranking import RerankingConfig, candidate_generator
-from torchrl_dalir.reranking.branching import continue_base
+from torchrl_dalir.reranking.branching import branch, candidate_chunks, continue_base, executed_actions
 
 
 class LineEnv:
@@ -174,6 +174,20 @@ def test_set_state_replays_the_unbranched_continuation_bit_for_bit():
             for a, b in zip(original, replayed):
                 for key in (keys.POINT_CLOUD, keys.AGENT_POS, keys.PRIVILEGED_STATE):
                     np.testing.assert_array_equal(a[key], b[key])  # NaN where no decision reads the cloud, in both
+        # The clean candidate's branch from decision j is the base episode from there: same outcome, same end state.
+        env.set_state(first[0][0])
+        continue_base(env, policy, first[0][1], seed, 0, "cpu")
+        end = env.get_state().physics
+        for j in (0, 3, 7):
+            state, observations = first[j]
+            chunks = candidate_chunks(
+                policy, candidate_generator(RerankingConfig(4)), observations, 4, seed, j, "x", "cpu"
+            )
+            clean = executed_actions(policy, chunks)[0]
+            assert branch(env, policy, state, observations, clean, seed, j, "cpu") == (outcome[0], outcome[1] - 8 * j)
+            np.testing.assert_array_equal(env.get_state().physics, end)
+            other = branch(env, policy, state, observations, executed_actions(policy, chunks)[1], seed, j, "cpu")
+            assert not np.array_equal(env.get_state().physics, end) and other[1] <= outcome[1] - 8 * j
     finally:
         env.close()
 

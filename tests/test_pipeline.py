@@ -247,7 +247,11 @@ def test_branched_stage_collects_ranks_and_is_skipped_next_time(tmp_path, monkey
     run_example("train_dp3_wm.py", args, monkeypatch)
     folder = tmp_path / "data" / "reach" / "branched_fm_seed0"
     meta = json.loads((folder / "meta.json").read_text())
-    assert meta["complete"] and (meta["candidates"], meta["num_candidates"], meta["seed"]) == ("dropout", 2, 10_000_000)
+    assert meta["complete"] and (meta["candidates"], meta["num_candidates"], meta["seed"]) == (
+        "dropout",
+        2,
+        900_000_000,
+    )
     ranking = json.loads((folder / "ranking.json").read_text())
     assert (ranking["train_decisions"], ranking["held_out_decisions"]) == (1, 1)  # decision 0 of each episode
     from torchrl_dalir.checkpoints import load_chunk_critic, load_policy

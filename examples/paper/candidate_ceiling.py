@@ -23,11 +23,10 @@ import torch
 
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
+from torchrl_dalir.evaluation.calibration import TEST_SEED
 from torchrl_dalir.evaluation.candidate_ceiling import candidate_ceiling, summarize_ceiling
 from torchrl_dalir.reranking import RerankingConfig, candidate_generator
-from torchrl_dalir.utils import atomic_write, git_commit
-
-TEST_SEED = 0  # the main job's test episodes: never measured here
+from torchrl_dalir.utils import atomic_write, git_commit, weights_digest
 
 
 @dataclass
@@ -72,7 +71,8 @@ class Config:
         return {"dropout": self.dropout, "noise": self.noise_std}.get(generator, 0.0)
 
     def settings(self) -> dict:
-        """What an episode's outcome depends on, besides the policy: a resumed file must match it."""
+        """What an episode's outcome depends on, besides the policy (its weights digest joins it): a resumed
+        file must match it."""
         return {
             "generators": {g: self.strength(g) for g in self.generators},
             "num_candidates": self.num_candidates,
@@ -107,9 +107,10 @@ def measure(cfg: Config, checkpoint: str) -> dict:
     policy = load_policy(checkpoint, cfg.device)
     path = Path(cfg.out) / policy.task / f"{_run_name(checkpoint)}.jsonl"
     path.parent.mkdir(parents=True, exist_ok=True)
-    episodes = _read_episodes(path, cfg.settings())
+    settings = {**cfg.settings(), "policy_digest": weights_digest(policy)}  # a retrained policy starts anew
+    episodes = _read_episodes(path, settings)
     if not path.exists() or len(path.read_text().splitlines()) != len(episodes) + 1:  # new, or a torn line to drop
-        atomic_write(path, "".join(json.dumps(r) + "\n" for r in [{"settings": cfg.settings()}, *episodes]))
+        atomic_write(path, "".join(json.dumps(r) + "\n" for r in [{"settings": settings}, *episodes]))
 
     def append(record: dict) -> None:
         with path.open("a") as file:

@@ -116,7 +116,7 @@ def collect_branched(
     task: str | TaskSpec | None = None,
     episodes: int = 20,
     stride: int = 2,
-    seed: int = 0,
+    seed: int,
     progress: bool = True,
     device="cpu",
 ) -> BranchedOutcomes:

@@ -4,7 +4,10 @@ A measurement in the simulator, never a method. At every decision of a base-poli
 candidate chunk is executed from the saved simulator state and the episode is continued with the
 base policy to its end (rollout-based policy improvement, Tesauro and Galperin 1996). The oracle
 executes a candidate whose branch succeeded (ties: the clean candidate, then the earliest
-success), so its success rate bounds what any scorer could reach with these candidates.
+success). Its success rate is that of one step of policy improvement with a perfect judge of each
+candidate's outcome under the base policy: what a scorer that knows those outcomes reaches. It is
+not a bound on every chooser: one that leaves the clean candidate at several decisions, none of
+which succeeds alone under the base policy, can succeed where the oracle fails.
 
 Common random numbers make this cheap and exact (:mod:`~torchrl_dalir.reranking.branching`): the
 clean candidate's branch from decision ``j`` *is* the base episode from there on, and after the
@@ -27,6 +30,7 @@ from tqdm.auto import tqdm
 from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
+from torchrl_dalir.evaluation.calibration import TEST_SEED
 from torchrl_dalir.reranking.branching import branch, candidate_chunks, continue_base, executed_actions
 from torchrl_dalir.seeds import eval_episode_seed
 
@@ -130,15 +134,17 @@ def candidate_ceiling(
     progress: bool = True,
     device="cpu",
 ) -> list[dict]:
-    """The ceiling over ``episodes`` evaluation episodes of evaluation ``seed`` (use a validation seed):
-    a record per episode (:func:`ceiling_episode`, plus ``episode``). Episodes in ``done`` are skipped
-    (resumption); ``on_episode`` receives each new record as soon as it is finished."""
+    """The ceiling over ``episodes`` evaluation episodes of evaluation ``seed`` (a validation seed; the
+    test seed is refused): a record per episode (:func:`ceiling_episode`, plus ``episode``). Episodes in
+    ``done`` are skipped (resumption); ``on_episode`` receives each new record as soon as it is finished."""
     spec = get_task(task)
     if policy.task is not None and spec.name != policy.task:
         raise ValueError(f"the policy was trained on {policy.task!r}, not {spec.name!r}")
     if num_candidates < 2:
         raise ValueError(f"num_candidates must be at least 2 (the clean candidate and one more), got {num_candidates}")
     check_at_least("stride", stride, 1)
+    if seed == TEST_SEED:
+        raise ValueError(f"seed={TEST_SEED} holds the test episodes; measure the ceiling on validation episodes")
     env = PointCloudObservation(
         make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps, history=policy.obs_steps
     )

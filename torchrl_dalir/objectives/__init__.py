@@ -8,6 +8,7 @@ from torchrl_dalir.objectives.flow_matching import FlowMatchingLoss
 from torchrl_dalir.objectives.imagined_completion import ImaginedCompletionLoss
 from torchrl_dalir.objectives.latent_dynamics import LatentDynamicsLoss
 from torchrl_dalir.objectives.task_completion import TaskCompletionLoss
+from torchrl_dalir.objectives.within_state_ranking import WithinStateRankingLoss
 
 __all__ = [
     "ChunkGenerationLoss",
@@ -18,4 +19,5 @@ __all__ = [
     "KeyedLossModule",
     "LatentDynamicsLoss",
     "TaskCompletionLoss",
+    "WithinStateRankingLoss",
 ]

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from torchrl_dalir.config import check_at_least, check_choice
+from torchrl_dalir.data.collection import SEEDS_PER_DATASET
 from torchrl_dalir.data.config import PRESETS as COLLECTION_PRESETS
 from torchrl_dalir.data.config import CollectionConfig
 from torchrl_dalir.envs.tasks import get_task
@@ -30,7 +31,10 @@ from torchrl_dalir.training.world_model import WorldModelTrainingConfig
 DERIVED_FROM = {"data": "out", "mixed_name": "policy and seed", "policy_checkpoint": "out, policy and seed"}
 
 STAGES = ("demos", "policy", "mixed", "exploration", "branched", "world_model", "calibration", "evaluation")
-BRANCHED_SEED_BASE = 10_000_000  # branched episodes of training seed s reset with data seeds BASE + 1000 s + i
+# Branched episodes of training seed s reset with data seeds BASE + 1000 s + i: dataset seed 900's range, which
+# no collection of the main job reaches (its datasets use seeds 2 s + 1 and 2 s + 2).
+BRANCHED_SEED_BASE = 900 * SEEDS_PER_DATASET
+MAX_BRANCHED_EPISODES = 1000
 STAGE_LOG = "stages"  # under out: <task>/<run name>.jsonl, a line per finished stage (wall time, peak memory)
 
 
@@ -129,6 +133,11 @@ class PipelineConfig:
             raise ValueError(f"calibration_alpha is a p-value threshold in (0, 1], got {self.calibration_alpha}")
         check_evaluation_settings(self.eval_episodes, self.eval_seed, self.num_candidates, self.dropout, prefix="eval_")
         check_at_least("branched_stride", self.branched_stride, 1)
+        if self.branched_episodes and (self.branched_episodes > MAX_BRANCHED_EPISODES or self.seed >= 100):
+            raise ValueError(
+                f"branched_episodes is at most {MAX_BRANCHED_EPISODES} and seed below 100 (their reset seeds "
+                f"lie in a reserved range), got {self.branched_episodes} and {self.seed}"
+            )
         check_at_least("branched_candidates", self.branched_candidates, 2)
         check_eval_seed(self.calibration_seed, "calibration_seed")
         for name in (

@@ -182,7 +182,7 @@ def run_pipeline(cfg: PipelineConfig) -> Path:
             cfg,
             cfg.branched_dir() / "meta.json",
             lambda: branch_and_rank(cfg, policy_path),
-            finished=branched_finished,
+            finished=partial(branched_finished, cfg),
         )
 
     # 4. Latent encoder, task-completion scorer and latent world model, the policy frozen.
@@ -283,17 +283,27 @@ def branch_and_rank(cfg: PipelineConfig, policy_path: Path) -> None:
         device=cfg.device,
     )
     if cfg.branched_episodes >= 2:
-        critic, metrics = train_ranking_scorer(outcomes, policy, RankingTrainingConfig(seed=cfg.seed))
-        save_chunk_critic(cfg.branched_dir() / "critic.pt", critic, policy, metrics)
+        critic, metrics = train_ranking_scorer(
+            outcomes, policy, RankingTrainingConfig(seed=cfg.seed), device=cfg.device
+        )
         atomic_write(cfg.branched_dir() / "ranking.json", json.dumps(metrics, indent=1))
+        save_chunk_critic(cfg.branched_dir() / "critic.pt", critic, policy, metrics)  # last: it marks the stage done
         print(
             f"[branched] {outcomes}: held-out within-decision AUC {metrics['held_out_auc']:.3f} "
             f"on {metrics['held_out_split_decisions']} split decisions"
         )
 
 
-def branched_finished(meta_path: Path) -> bool:
-    return meta_path.exists() and json.loads(meta_path.read_text()).get("complete", False)
+def branched_finished(cfg: PipelineConfig, meta_path: Path) -> bool:
+    """The outcomes are complete, of the job's plan (another plan runs the stage, which refuses the folder) and,
+    if a critic is trained on them, it is written (a kill in between trains it again)."""
+    if not meta_path.exists():
+        return False
+    meta = json.loads(meta_path.read_text())
+    plan = (meta.get("num_candidates"), meta.get("episodes"), meta.get("stride"))
+    if not meta.get("complete") or plan != (cfg.branched_candidates, cfg.branched_episodes, cfg.branched_stride):
+        return False
+    return cfg.branched_episodes < 2 or (meta_path.parent / "critic.pt").exists()
 
 
 def dataset_finished(meta_path: Path) -> bool:

@@ -99,23 +99,26 @@ def train_ranking_scorer(
     encoder=None,
     world_model=None,
     progress_every: int = 0,
+    device="cpu",
 ) -> tuple[nn.Module, dict]:
     """Trains a scorer on the training episodes of ``outcomes`` and measures it on the held-out ones.
     Returns the scorer and its metrics: the losses at the start and end, and the within-decision AUC
     on the training and the held-out decisions that split (with their counts)."""
     torch.manual_seed(cfg.seed)
-    rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
+    rows = (outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes).to(device)
     executed = rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]
+    held_out = _held_out(rows, cfg.held_out_fraction)
     critic = None
     if cfg.input == "state_chunk":
         cond_dim = policy.encode(rows[keys.POINT_CLOUD][:1], rows[keys.AGENT_POS][:1]).shape[-1]
-        critic = ChunkCritic(cond_dim, policy.action_dim, policy.action_steps, hidden=cfg.hidden)
-        critic.action_normalizer.fit(executed)
+        critic = ChunkCritic(cond_dim, policy.action_dim, policy.action_steps, hidden=cfg.hidden).to(device)
+        critic.action_normalizer.fit(executed[~held_out])  # the training episodes' actions only
     features = candidate_features(rows, policy, cfg.input, critic, encoder, world_model)
     table = TensorDict({CANDIDATE_FEATURES: features, SUCCESS: rows[SUCCESS]}, [len(rows)])
-    held_out = _held_out(rows, cfg.held_out_fraction)
     train, test = table[~held_out], table[held_out]
-    scorer = critic.scorer if critic is not None else TaskCompletionScorer(features.shape[-1], hidden=cfg.hidden)
+    scorer = (
+        critic.scorer if critic is not None else TaskCompletionScorer(features.shape[-1], hidden=cfg.hidden).to(device)
+    )
     loss_module = WithinStateRankingLoss(scorer, cfg.outcome_weight if cfg.ranking else 1.0)
     optimizer = torch.optim.AdamW(scorer.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     generator = torch.Generator().manual_seed(cfg.seed)
@@ -138,7 +141,7 @@ def train_ranking_scorer(
         last = {k: float(v) for k, v in loss_module(train).items()}
 
         def auc(part: TensorDict) -> float:
-            return within_decision_auc(scorer(part[CANDIDATE_FEATURES]).tolist(), part[SUCCESS].tolist())
+            return within_decision_auc(scorer(part[CANDIDATE_FEATURES]).cpu().tolist(), part[SUCCESS].cpu().tolist())
 
         def splits(part: TensorDict) -> int:
             wins = part[SUCCESS].sum(-1)
