@@ -229,6 +229,8 @@ def test_script_resumes_after_a_torn_line_and_summarises_the_same(trained_policy
     episodes.write_text("\n".join(lines[:2]) + "\n" + lines[2][:20])  # killed while writing episode 1
     assert main(argv) == first  # episode 1 measured again, to the same outcome
     assert json.loads((tmp_path / "ceiling.json").read_text())["runs"] == first
+    (partial,) = main([*argv, "episodes=5", "measure=false"])  # summarises the 2 episodes measured, runs none
+    assert partial["episodes"] == 2 and len(episodes.read_text().splitlines()) == 3
     with pytest.raises(ValueError, match="was measured with"):
         main([*argv[:2], "num_candidates=3", *argv[3:]])
     with pytest.raises(ValueError, match="test episodes"):

@@ -43,6 +43,7 @@ class Config:
     seed: int = 1  # evaluation seed of the validation episodes
     exhaustive: bool = False  # branch every candidate at every decision (counts the decisions that split)
     stride: int = 1  # the oracle chooses at every stride-th decision (> 1: a cheaper lower bound)
+    measure: bool = True  # false: summarise the episodes measured so far, run none (a run cut short by its budget)
     out: str = "outputs/candidate_ceiling"
     json: str | None = None
     device: str = "cpu"
@@ -117,20 +118,21 @@ def measure(cfg: Config, checkpoint: str) -> dict:
             file.write(json.dumps(record) + "\n")
 
     generators = {g: candidate_generator(cfg.reranking(g)) for g in cfg.generators}
-    episodes += candidate_ceiling(
-        policy,
-        policy.task,
-        generators,
-        episodes=cfg.episodes,
-        seed=cfg.seed,
-        num_candidates=cfg.num_candidates,
-        exhaustive=cfg.exhaustive,
-        stride=cfg.stride,
-        done=[r["episode"] for r in episodes],
-        on_episode=append,
-        progress=cfg.progress,
-        device=cfg.device,
-    )
+    if cfg.measure:
+        episodes += candidate_ceiling(
+            policy,
+            policy.task,
+            generators,
+            episodes=cfg.episodes,
+            seed=cfg.seed,
+            num_candidates=cfg.num_candidates,
+            exhaustive=cfg.exhaustive,
+            stride=cfg.stride,
+            done=[r["episode"] for r in episodes],
+            on_episode=append,
+            progress=cfg.progress,
+            device=cfg.device,
+        )
     episodes = sorted((r for r in episodes if r["episode"] < cfg.episodes), key=lambda r: r["episode"])
     return {
         "task": policy.task,
