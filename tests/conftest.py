@@ -52,6 +52,17 @@ def synthetic_trajectory(num_actions: int, success: bool, num_points: int = 8, a
     )
 
 
+def untrained_reach_policy():
+    """A tiny untrained FM policy for reach's 40-point clouds (its actions are noise, its normalizers made up)."""
+    from torchrl_dalir.modules import PolicyConfig, make_policy
+
+    torch.manual_seed(0)
+    config = PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64])
+    policy = make_policy(config, action_dim=4, state_dim=4, task="reach", num_points=40)
+    policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 2 - 1)
+    return policy
+
+
 @pytest.fixture(autouse=True)
 def _thread_count_restored():
     """Every test leaves torch's thread count as it found it: results differ in the last bits between

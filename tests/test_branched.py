@@ -4,7 +4,7 @@ import math
 
 import pytest
 import torch
-from conftest import SHORT_REACH
+from conftest import SHORT_REACH, untrained_reach_policy
 from tensordict import TensorDict
 
 from torchrl_dalir.data import branched
@@ -45,21 +45,8 @@ def test_ranking_loss_prefers_the_winner_on_a_toy_decision():
     assert logits[0, 0] > logits[0, 1] and logits[1, 1] > logits[1, 0]
 
 
-def _policy():
-    torch.manual_seed(0)
-    policy = make_policy(
-        PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]),
-        action_dim=4,
-        state_dim=4,
-        task="reach",
-        num_points=40,
-    )
-    policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 2 - 1)
-    return policy
-
-
 def test_branched_stage_resumes_to_identical_rows_after_a_kill(tmp_path, monkeypatch):
-    policy = _policy()
+    policy = untrained_reach_policy()
     settings = dict(
         reranking=RerankingConfig(3, "clean"), task=SHORT_REACH, episodes=2, stride=4, seed=7, progress=False
     )
@@ -92,7 +79,7 @@ def test_branched_stage_resumes_to_identical_rows_after_a_kill(tmp_path, monkeyp
 
 def test_ranking_scorer_trains_and_reports_held_out_auc():
     # Synthetic branched decisions: the winners are the candidates whose first action is largest.
-    policy = _policy()
+    policy = untrained_reach_policy()
     g = torch.Generator().manual_seed(0)
     chunks = torch.rand(80, 4, 16, 4, generator=g) * 2 - 1
     push = chunks[:, :, 1:9, 0].mean(-1)
@@ -149,7 +136,7 @@ def test_actor_selects_by_the_chunk_critic_and_its_checkpoint_reloads_identical(
     from torchrl_dalir.modules import ChunkCritic, LatentEncoder, LatentWorldModel
     from torchrl_dalir.reranking import SelectionConfig
 
-    policy = _policy()
+    policy = untrained_reach_policy()
     encoder = LatentEncoder.from_policy(policy)
     parts = (
         encoder,

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import SHORT_REACH
+from conftest import SHORT_REACH, untrained_reach_policy
 
 from torchrl_dalir import keys
 from torchrl_dalir.evaluation.candidate_ceiling import (
@@ -137,26 +137,11 @@ def test_summary_exact_values():
     assert (entry["median_fix_decision"], entry["median_winners_at_fix"], entry["headroom"]) == (3.0, 3.0, 0.5)
 
 
-def _tiny_policy():
-    from torchrl_dalir.modules import PolicyConfig, make_policy
-
-    torch.manual_seed(0)
-    policy = make_policy(
-        PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]),
-        action_dim=4,
-        state_dim=4,
-        task="reach",
-        num_points=40,
-    )
-    policy.fit_normalizers(torch.rand(50, 3), torch.rand(50, 4), torch.rand(50, 4) * 2 - 1)
-    return policy
-
-
 def test_set_state_replays_the_unbranched_continuation_bit_for_bit():
     from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
     from torchrl_dalir.seeds import eval_episode_seed
 
-    policy, seed = _tiny_policy(), eval_episode_seed(1, 0)
+    policy, seed = untrained_reach_policy(), eval_episode_seed(1, 0)
     env = PointCloudObservation(make_simulator(SHORT_REACH), SHORT_REACH, 40, decision_period=8, history=2)
     try:
         first, second = [], []
@@ -193,7 +178,7 @@ def test_set_state_replays_the_unbranched_continuation_bit_for_bit():
 
 
 def test_ceiling_on_the_simulator_resumes_and_reports_every_generator():
-    policy = _tiny_policy()
+    policy = untrained_reach_policy()
     generators = {name: candidate_generator(RerankingConfig(2, name)) for name in ("dropout", "clean")}
     seen = []
     records = candidate_ceiling(
