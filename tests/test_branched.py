@@ -12,7 +12,7 @@ from torchrl_dalir.data.branched import BranchedOutcomes, collect_branched
 from torchrl_dalir.modules import PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.objectives.within_state_ranking import WithinStateRankingLoss
 from torchrl_dalir.reranking import RerankingConfig
-from torchrl_dalir.training.ranking import RankingTrainingConfig, train_ranking_scorer
+from torchrl_dalir.training.ranking import RankingTrainingConfig, cross_validated_auc, train_ranking_scorer
 
 
 def test_ranking_loss_exact_values_and_only_split_decisions_rank():
@@ -98,6 +98,8 @@ def test_ranking_scorer_trains_and_reports_held_out_auc():
     assert metrics["held_out_split_decisions"] == 24 and metrics["train_split_decisions"] == 56
     assert metrics["loss_end"]["loss_ranking"] < metrics["loss_start"]["loss_ranking"]
     assert metrics["held_out_auc"] > 0.8
+    cv = cross_validated_auc(rows, policy, RankingTrainingConfig(steps=300, hidden=32, seed=0), folds=4)
+    assert (cv["folds"], cv["split_decisions"]) == (4, 80) and cv["auc"] > 0.8  # every decision scored out of fold
 
 
 def test_script_collects_trains_both_variants_and_reruns_from_the_stored_data(trained_policy, tmp_path):

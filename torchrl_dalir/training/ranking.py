@@ -100,14 +100,16 @@ def train_ranking_scorer(
     world_model=None,
     progress_every: int = 0,
     device="cpu",
+    held_out: torch.Tensor | None = None,
 ) -> tuple[nn.Module, dict]:
-    """Trains a scorer on the training episodes of ``outcomes`` and measures it on the held-out ones.
-    Returns the scorer and its metrics: the losses at the start and end, and the within-decision AUC
-    on the training and the held-out decisions that split (with their counts)."""
+    """Trains a scorer on the training episodes of ``outcomes`` and measures it on the held-out ones
+    (``held_out``, a mask over the decisions; by default the last ``cfg.held_out_fraction`` of the episodes).
+    Returns the scorer and its metrics: the losses at the start and end, the within-decision AUC on the
+    training and the held-out decisions that split (with their counts), and the held-out logits."""
     torch.manual_seed(cfg.seed)
     rows = (outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes).to(device)
     executed = rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]
-    held_out = _held_out(rows, cfg.held_out_fraction)
+    held_out = (_held_out(rows, cfg.held_out_fraction) if held_out is None else held_out).to(device)
     critic = None
     if cfg.input == "state_chunk":
         cond_dim = policy.encode(rows[keys.POINT_CLOUD][:1], rows[keys.AGENT_POS][:1]).shape[-1]
@@ -157,5 +159,32 @@ def train_ranking_scorer(
             "held_out_decisions": len(test),
             "held_out_split_decisions": splits(test),
             "held_out_auc": auc(test),
+            "held_out_logits": scorer(test[CANDIDATE_FEATURES]).cpu().tolist(),
         }
     return (critic if critic is not None else scorer).eval(), metrics
+
+
+def cross_validated_auc(
+    outcomes: BranchedOutcomes, policy, cfg: RankingTrainingConfig, folds: int = 0, **kwargs
+) -> dict:
+    """The out-of-fold within-decision AUC: the episodes fall into ``folds`` groups (0: one per episode), and the
+    decisions of each group are scored by a scorer trained on the others' (:func:`train_ranking_scorer`, with
+    ``kwargs``). Every decision that splits is then judged by a scorer that never saw its episode, which uses all
+    of them where a single held-out share leaves few. Groups without a split decision are not trained on."""
+    rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
+    success = rows[SUCCESS]
+    wins = success.sum(-1)
+    split = (wins > 0) & (wins < success.shape[-1])
+    seeds = rows[RESET_SEED].unique(sorted=True)
+    logits = torch.full(success.shape, float("nan"))
+    for group in seeds.tensor_split(folds or len(seeds)):
+        fold = torch.isin(rows[RESET_SEED], group)
+        if (split & fold).any():
+            _, metrics = train_ranking_scorer(rows, policy, cfg, held_out=fold, **kwargs)
+            logits[fold] = torch.tensor(metrics["held_out_logits"])
+    scored = split & ~logits.isnan().any(-1)
+    return {
+        "folds": folds or len(seeds),
+        "split_decisions": int(split.sum()),
+        "auc": within_decision_auc(logits[scored].tolist(), success[scored].tolist()),
+    }
