@@ -73,6 +73,9 @@ def test_branched_stage_resumes_to_identical_rows_after_a_kill(tmp_path, monkeyp
     monkeypatch.setattr(branched, "_memmap_atomically", memmap)
     resumed = collect_branched(policy, tmp_path / "killed", **settings)
     assert (resumed.rows == reference.rows).all()
+    early = collect_branched(policy, tmp_path / "early", **{**settings, "decisions": 5})  # decisions 0 and 4 only
+    assert early.rows["decision"].tolist() == [0, 4, 0, 4]
+    assert (early.rows == reference.rows[reference.rows["decision"] < 5]).all()
     with pytest.raises(ValueError, match="another plan"):
         collect_branched(policy, tmp_path / "killed", **{**settings, "stride": 2})
 

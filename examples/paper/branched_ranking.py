@@ -59,6 +59,7 @@ class Config:
     num_candidates: int = 8
     episodes: int = 30
     stride: int = 2
+    decisions: int = 0  # only the decisions before this index (0: all)
     data_seed: int = 500_000  # the episodes' reset seeds start here (data seeds, never evaluation seeds)
     variants: list[str] = field(default_factory=lambda: ["ranking", "outcome"])
     training: RankingTrainingConfig = field(default_factory=RankingTrainingConfig)
@@ -88,6 +89,7 @@ def main(argv: list[str]) -> dict:
         cfg.reranking(),
         episodes=cfg.episodes,
         stride=cfg.stride,
+        decisions=cfg.decisions,
         seed=cfg.data_seed,
         progress=cfg.progress,
     )

@@ -49,9 +49,10 @@ class PipelineConfig:
     exploration_rollouts: trajectories of the base policy acting on point-dropout views (one of
         DALI-R's candidates at random per decision), collected as ``explore_<policy>_seed<seed>``
         and added to the world model's data (0: none, the paper's data; the ``cpu`` preset: 60).
-    branched_episodes, branched_stride, branched_candidates: branched outcomes
+    branched_episodes, branched_stride, branched_candidates, branched_decisions: branched outcomes
         (:mod:`~torchrl_dalir.data.branched`): at every ``branched_stride``-th decision of
-        ``branched_episodes`` base-policy episodes on data seeds, ``branched_candidates`` of DALI-R's
+        ``branched_episodes`` base-policy episodes on data seeds (before decision ``branched_decisions``,
+        if not 0), ``branched_candidates`` of DALI-R's
         candidates are each executed from the saved state and continued with the base policy, in
         ``<out>/data/<task>/branched_<policy>_seed<seed>``, with the within-decision AUC of a scorer
         trained on them (``ranking.json`` there). 0 episodes (the default): no branched outcomes.
@@ -100,6 +101,7 @@ class PipelineConfig:
     branched_episodes: int = 0
     branched_stride: int = 3
     branched_candidates: int = 8
+    branched_decisions: int = 0
     eval_episodes: int = 50
     eval_seed: int = 0
     eval_methods: list[str] = field(default_factory=lambda: ["base", "dalir", "argmax", "random"])
@@ -139,6 +141,7 @@ class PipelineConfig:
                 f"lie in a reserved range), got {self.branched_episodes} and {self.seed}"
             )
         check_at_least("branched_candidates", self.branched_candidates, 2)
+        check_at_least("branched_decisions", self.branched_decisions, 0)
         check_eval_seed(self.calibration_seed, "calibration_seed")
         for name in (
             "calibration_episodes",

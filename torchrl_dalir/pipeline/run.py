@@ -278,6 +278,7 @@ def branch_and_rank(cfg: PipelineConfig, policy_path: Path) -> None:
         reranking,
         episodes=cfg.branched_episodes,
         stride=cfg.branched_stride,
+        decisions=cfg.branched_decisions,
         seed=seed,
         progress=cfg.collection.progress,
         device=cfg.device,
@@ -300,8 +301,9 @@ def branched_finished(cfg: PipelineConfig, meta_path: Path) -> bool:
     if not meta_path.exists():
         return False
     meta = json.loads(meta_path.read_text())
-    plan = (meta.get("num_candidates"), meta.get("episodes"), meta.get("stride"))
-    if not meta.get("complete") or plan != (cfg.branched_candidates, cfg.branched_episodes, cfg.branched_stride):
+    plan = (meta.get("num_candidates"), meta.get("episodes"), meta.get("stride"), meta.get("decisions", 0))
+    wanted = (cfg.branched_candidates, cfg.branched_episodes, cfg.branched_stride, cfg.branched_decisions)
+    if not meta.get("complete") or plan != wanted:
         return False
     return cfg.branched_episodes < 2 or (meta_path.parent / "critic.pt").exists()
 
