@@ -92,7 +92,7 @@ def test_bad_settings_are_refused():
     with pytest.raises(ValueError, match="selection rule must be one of"):
         SelectionConfig("best")
     with pytest.raises(ValueError, match="selection scorer must be one of"):
-        SelectionConfig(scorer="critic")
+        SelectionConfig(scorer="oracle")
     with pytest.raises(ValueError, match="temperature > 0"):
         SelectionConfig("softmax", temperature=0.0)
     with pytest.raises(ValueError, match=r"\[batch, members, candidates\]"):
