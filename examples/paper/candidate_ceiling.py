@@ -69,7 +69,7 @@ class Config:
         return RerankingConfig(self.num_candidates, generator, self.dropout, self.noise_std)
 
     def strength(self, generator: str) -> float:
-        return {"dropout": self.dropout, "noise": self.noise_std}.get(generator, 0.0)
+        return self.reranking(generator).generator_setting
 
     def settings(self) -> dict:
         """What an episode's outcome depends on, besides the policy (its weights digest joins it): a resumed

@@ -30,7 +30,6 @@ import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 from tensordict import TensorDict
 from torchrl.data import ReplayBuffer, TensorStorage
@@ -40,9 +39,9 @@ from torchrl_dalir import keys
 from torchrl_dalir.config import check_at_least
 from torchrl_dalir.data.storage import _memmap_atomically, _read_json
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
-from torchrl_dalir.envs.history import latest_history
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
-from torchrl_dalir.reranking.branching import branch, candidate_chunks, continue_base, executed_actions
+from torchrl_dalir.objectives.within_state_ranking import split_decisions
+from torchrl_dalir.reranking.branching import base_episode, branch_decision, observation_history
 from torchrl_dalir.reranking.candidates import candidate_generator
 from torchrl_dalir.reranking.config import RerankingConfig
 from torchrl_dalir.seeds import check_data_seed
@@ -76,31 +75,20 @@ def _episode_rows(
 ) -> TensorDict:
     """Every ``stride``-th decision (before ``before``, if not 0) of the base policy's episode reset with
     ``reset_seed``, branched."""
-    observation, _ = env.reset(seed=reset_seed)
-    decisions: list[tuple] = []
-    base_success, base_steps = continue_base(
-        env, policy, [observation], reset_seed, 0, device, visit=lambda _, obs: decisions.append((env.get_state(), obs))
-    )
-    action_steps, rows = policy.action_steps, []
-    for j, (state, observations) in enumerate(decisions):
+    episode, rows = base_episode(env, policy, reset_seed, device), []
+    for j in range(len(episode.decisions)):
         if j % stride or (before and j >= before):
             continue
-        chunks = candidate_chunks(policy, generator, observations, num_candidates, reset_seed, j, name, device)
-        actions = executed_actions(policy, chunks)
-        outcomes = [(base_success, base_steps - j * action_steps)]  # the clean branch is the base episode from here
-        outcomes += [
-            branch(env, policy, state, observations, actions[k], reset_seed, j, device)
-            for k in range(1, num_candidates)
-        ]
-        history = latest_history(observations, policy.obs_steps)
+        chunks, successes, steps = branch_decision(env, policy, episode, j, generator, name, num_candidates, device)
+        cloud, agent_pos = observation_history(policy, episode.decisions[j][1], "cpu")
         rows.append(
             TensorDict(
                 {
-                    keys.POINT_CLOUD: torch.as_tensor(np.stack([o[keys.POINT_CLOUD] for o in history])),
-                    keys.AGENT_POS: torch.as_tensor(np.stack([o[keys.AGENT_POS] for o in history])),
+                    keys.POINT_CLOUD: cloud[0],
+                    keys.AGENT_POS: agent_pos[0],
                     keys.ACTION_CHUNK: chunks.cpu(),
-                    SUCCESS: torch.tensor([won for won, _ in outcomes]),
-                    STEPS_TO_SUCCESS: torch.tensor([steps if won else -1 for won, steps in outcomes]),
+                    SUCCESS: torch.tensor(successes),
+                    STEPS_TO_SUCCESS: torch.tensor([took if won else -1 for won, took in zip(successes, steps)]),
                     RESET_SEED: torch.tensor(reset_seed),
                     DECISION: torch.tensor(j),
                 },
@@ -141,9 +129,16 @@ def collect_branched(
     check_data_seed(seed)
     check_data_seed(seed + episodes - 1)
     spec = get_task(task if task is not None else policy.task)
-    setting = {"dropout": reranking.dropout, "noise": reranking.noise_std}.get(name, 0.0)
     meta = BranchedMeta(
-        spec.name, weights_digest(policy), name, setting, num_candidates, episodes, stride, seed, decisions
+        spec.name,
+        weights_digest(policy),
+        name,
+        reranking.generator_setting,
+        num_candidates,
+        episodes,
+        stride,
+        seed,
+        decisions,
     )
     if (root / "meta.json").exists():
         stored = BranchedMeta(**_read_json(root / "meta.json"))
@@ -205,8 +200,7 @@ class BranchedOutcomes:
 
     def split_decisions(self) -> torch.Tensor:
         """Which decisions' candidates split: some, not all, went on to succeed."""
-        wins = self.rows[SUCCESS].sum(-1)
-        return (wins > 0) & (wins < self.rows[SUCCESS].shape[-1])
+        return split_decisions(self.rows[SUCCESS])
 
     def replay_buffer(self, batch_size: int | None = None, sampler=None) -> ReplayBuffer:
         """A TorchRL replay buffer over the memory-mapped decisions (no copy); a sample is a batch of decisions."""

@@ -31,7 +31,7 @@ from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 from torchrl_dalir.evaluation.calibration import TEST_SEED
-from torchrl_dalir.reranking.branching import branch, candidate_chunks, continue_base, executed_actions
+from torchrl_dalir.reranking.branching import base_episode, branch_decision
 from torchrl_dalir.seeds import eval_episode_seed
 
 
@@ -58,17 +58,8 @@ def ceiling_episode(
     With ``stride > 1`` the oracle chooses only at every ``stride``-th decision (and keeps the base
     policy's chunk at the others): a lower bound on the every-decision ceiling, at ``1 / stride`` of the cost."""
     device = torch.device(device)
-    observation, _ = env.reset(seed=episode_seed)
-    decisions: list[tuple] = []  # (simulator state, observations so far) at every decision of the base episode
-    base_success, base_steps = continue_base(
-        env,
-        policy,
-        [observation],
-        episode_seed,
-        0,
-        device,
-        visit=lambda _, obs: decisions.append((env.get_state(), obs)),
-    )
+    episode = base_episode(env, policy, episode_seed, device)
+    base_success, base_steps, decisions = episode.success, episode.steps, episode.decisions
     record = {
         "reset_seed": episode_seed,
         "base_success": base_success,
@@ -88,19 +79,10 @@ def ceiling_episode(
         if exhaustive:
             outcome["branch_successes"] = []
         if not base_success or exhaustive:
-            for j, (state, observations) in enumerate(decisions):
+            for j in range(len(decisions)):
                 if j % stride:
                     continue
-                actions = executed_actions(
-                    policy,
-                    candidate_chunks(policy, generator, observations, num_candidates, episode_seed, j, name, device),
-                )
-                # candidate 0's branch is the base episode from decision j: its outcome is known
-                successes, steps = [base_success], [base_steps - j * policy.action_steps]
-                for k in range(1, num_candidates):
-                    won, took = branch(env, policy, state, observations, actions[k], episode_seed, j, device)
-                    successes.append(won)
-                    steps.append(took)
+                _, successes, steps = branch_decision(env, policy, episode, j, generator, name, num_candidates, device)
                 outcome["branches"] += num_candidates - 1
                 if exhaustive:
                     outcome["branch_successes"].append(successes)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torch import nn
 
@@ -11,6 +12,12 @@ from torchrl_dalir.objectives.common import KeyedLossModule
 
 CANDIDATE_FEATURES = "candidate_features"  # [B, K, F] what the scorer reads of each candidate of a decision
 SUCCESS = "success"  # [B, K] bool, whether each candidate's branch went on to succeed
+
+
+def split_decisions(success: torch.Tensor) -> torch.Tensor:
+    """Which decisions ``[..., K]`` of candidates' outcomes split: some, not all, succeeded."""
+    wins = success.sum(-1)
+    return (wins > 0) & (wins < success.shape[-1])
 
 
 class WithinStateRankingLoss(KeyedLossModule):
@@ -69,9 +76,8 @@ class WithinStateRankingLoss(KeyedLossModule):
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         logits = self.scorer(tensordict[self.tensor_keys.features])
         success = tensordict[self.tensor_keys.success].to(logits.dtype)
-        wins = success.sum(-1)
-        split = (wins > 0) & (wins < success.shape[-1])
-        target = success / wins.clamp(min=1).unsqueeze(-1)
+        split = split_decisions(success)
+        target = success / success.sum(-1, keepdim=True).clamp(min=1)
         listwise = -(target * logits.log_softmax(-1)).sum(-1)
         ranking = (listwise * split).sum() / split.sum().clamp(min=1)  # 0 without a split decision in the batch
         outcome = nn.functional.binary_cross_entropy_with_logits(logits, success)

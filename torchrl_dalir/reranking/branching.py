@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -133,3 +134,51 @@ def branch(
         return success, len(new)
     success, steps = continue_base(env, policy, observations + new, episode_seed, decision + 1, device)
     return success, len(new) + steps
+
+
+@dataclass
+class BaseEpisode:
+    """The base policy's episode from a reset: its outcome, and the simulator state and the observations so
+    far at every decision (where candidates branch)."""
+
+    reset_seed: int
+    success: bool
+    steps: int
+    decisions: list[tuple]
+
+
+def base_episode(env: PointCloudObservation, policy, reset_seed: int, device) -> BaseEpisode:
+    """Resets ``env`` with ``reset_seed`` and runs the base policy to the episode's end, saving every
+    decision's state."""
+    observation, _ = env.reset(seed=reset_seed)
+    decisions: list[tuple] = []
+    success, steps = continue_base(
+        env, policy, [observation], reset_seed, 0, device, visit=lambda _, obs: decisions.append((env.get_state(), obs))
+    )
+    return BaseEpisode(reset_seed, success, steps, decisions)
+
+
+def branch_decision(
+    env: PointCloudObservation,
+    policy,
+    episode: BaseEpisode,
+    decision: int,
+    generator,
+    name: str,
+    num_candidates: int,
+    device,
+) -> tuple[torch.Tensor, list[bool], list[int]]:
+    """Every candidate of ``decision`` of ``episode``, each executed from its state and continued with the base
+    policy: the chunks ``[K, H, A]``, and each branch's success and steps after the decision. Candidate 0's
+    branch is the base episode itself from there, so it is not simulated again."""
+    state, observations = episode.decisions[decision]
+    chunks = candidate_chunks(
+        policy, generator, observations, num_candidates, episode.reset_seed, decision, name, device
+    )
+    actions = executed_actions(policy, chunks)
+    successes, steps = [episode.success], [episode.steps - decision * policy.action_steps]
+    for k in range(1, num_candidates):
+        won, took = branch(env, policy, state, observations, actions[k], episode.reset_seed, decision, device)
+        successes.append(won)
+        steps.append(took)
+    return chunks, successes, steps

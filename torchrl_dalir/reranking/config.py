@@ -68,6 +68,11 @@ class RerankingConfig:
                 f"got {self.num_candidates}"
             )
 
+    @property
+    def generator_setting(self) -> float:
+        """The candidate generator's own setting: the dropout probability, the noise std, or 0 (``clean``)."""
+        return {"dropout": self.dropout, "noise": self.noise_std}.get(self.candidates, 0.0)
+
     def updated(self, **settings) -> RerankingConfig:
         """A copy with ``settings`` replaced, those given as ``None`` left as they are (keyword
         arguments that default to ``None`` override the record only when given)."""

@@ -28,7 +28,7 @@ from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
 from torchrl_dalir.modules.chunk_critic import ChunkCritic
 from torchrl_dalir.modules.config import executed_slice
 from torchrl_dalir.modules.world_model import TaskCompletionScorer
-from torchrl_dalir.objectives.within_state_ranking import CANDIDATE_FEATURES, WithinStateRankingLoss
+from torchrl_dalir.objectives.within_state_ranking import CANDIDATE_FEATURES, WithinStateRankingLoss, split_decisions
 
 INPUTS = ("state_chunk", "imagined")
 
@@ -146,8 +146,7 @@ def train_ranking_scorer(
             return within_decision_auc(scorer(part[CANDIDATE_FEATURES]).cpu().tolist(), part[SUCCESS].cpu().tolist())
 
         def splits(part: TensorDict) -> int:
-            wins = part[SUCCESS].sum(-1)
-            return int(((wins > 0) & (wins < part[SUCCESS].shape[-1])).sum())
+            return int(split_decisions(part[SUCCESS]).sum())
 
         metrics = {
             "config": asdict(cfg),
@@ -173,8 +172,7 @@ def cross_validated_auc(
     of them where a single held-out share leaves few. Groups without a split decision are not trained on."""
     rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
     success = rows[SUCCESS]
-    wins = success.sum(-1)
-    split = (wins > 0) & (wins < success.shape[-1])
+    split = split_decisions(success)
     seeds = rows[RESET_SEED].unique(sorted=True)
     logits = torch.full(success.shape, float("nan"))
     for group in seeds.tensor_split(folds or len(seeds)):
