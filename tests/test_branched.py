@@ -174,3 +174,50 @@ def test_actor_selects_by_the_chunk_critic_and_its_checkpoint_reloads_identical(
                 PolicyConfig(down_dims=[16, 32, 64], point_hidden=[16, 32, 64]), action_dim=4, state_dim=4
             ),
         )
+
+
+def test_critic_screen_trains_the_better_variant_and_pairs_it_with_the_base_policy(trained_policy, tmp_path):
+    import json
+    import runpy
+    from pathlib import Path
+
+    from torchrl_dalir.checkpoints import load_chunk_critic, load_policy
+
+    _, checkpoint = trained_policy
+    policy = load_policy(checkpoint)
+    collect_branched(
+        policy,
+        tmp_path / "branched",
+        RerankingConfig(num_candidates=2),
+        episodes=2,
+        stride=1,
+        decisions=1,
+        seed=7,
+        progress=False,
+    )
+    script = Path(__file__).resolve().parents[1] / "examples" / "paper" / "critic_screen.py"
+    main = runpy.run_path(str(script))["main"]
+    argv = [
+        f"policy={checkpoint}",
+        f"branched={tmp_path / 'branched'}",
+        "episodes=2",
+        "folds=2",
+        "training.steps=5",
+        f"out={tmp_path / 'screen'}",
+        "progress=false",
+        f"json={tmp_path / 'screen.json'}",
+    ]
+    with pytest.raises(ValueError, match="test episodes"):
+        main([*argv, "seed=0"])
+    result = main(argv)
+    assert json.loads((tmp_path / "screen.json").read_text())["paired"] == result["paired"]
+    assert result["critic"]["variant"] in ("outcome", "ranking") and result["branched"]["rows"] == 2
+    base, critic = (result["methods"][m]["records"] for m in ("base policy", "critic"))
+    assert [r["reset_seed"] for r in base] == [r["reset_seed"] for r in critic]
+    assert result["paired"]["dalir_only"] == sum(c["success"] and not b["success"] for b, c in zip(base, critic))
+    for b, c in zip(base, critic):
+        assert c["details"]["decisions"] == 1  # the first decision only, then the base policy
+        if c["details"]["clean_chosen"] == 1.0:  # common noise: keeping the clean chunk replays the base episode
+            assert (c["steps"], c["episode_return"]) == (b["steps"], b["episode_return"])
+    run = tmp_path / "screen" / policy.task / Path(checkpoint).parent.name
+    assert load_chunk_critic(run / "critic.pt", policy=policy).metrics["variant"] == result["critic"]["variant"]

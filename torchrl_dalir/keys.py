@@ -14,6 +14,7 @@ DONE = "done"
 TERMINATED = "terminated"
 TRUNCATED = "truncated"
 IS_INIT = "is_init"  # written by TorchRL's InitTracker at episode starts
+STEP_COUNT = "step_count"  # written by TorchRL's StepCounter: steps since the episode's start
 EPISODE_SEED = "episode_seed"  # [..., 1] int64, the reset seed of the episode (make_env(..., seed_stride=k) only)
 PIXELS = "pixels"  # [..., H, W, 3] uint8, an RGB render from the task's camera (make_env(..., pixels=size), for videos)
 

@@ -263,9 +263,12 @@ def decision_summary(rollout: TensorDictBase, action_steps: int) -> dict:
     whose steps carry :data:`CANDIDATE_SCORES` and :data:`CHOSEN_CANDIDATE`): the fraction of
     decisions that kept the clean candidate, and the mean over decisions of the clean candidate's
     score, the chosen one's margin over it, and the spread (std) of the candidates' scores. Small
-    margins next to the scorer's errors mean the choice is close to random."""
+    margins next to the scorer's errors mean the choice is close to random. Decisions the actor did not
+    rerank (``RerankingConfig.decisions``; their scores are NaN) are left out: ``decisions`` counts the reranked."""
     decisions = rollout[..., ::action_steps]  # every step repeats its decision's values
     scores, chosen = decisions[CANDIDATE_SCORES].float(), decisions[CHOSEN_CANDIDATE]
+    reranked = ~scores.isnan().any(-1)
+    scores, chosen = scores[reranked], chosen[reranked]
     clean = scores[..., 0]
     return {
         "decisions": chosen.numel(),

@@ -27,6 +27,20 @@ CANDIDATE_SCORES = ("dalir", "candidate_scores")  # [..., K] sigmoid(C(s_hat)) o
 CHOSEN_CANDIDATE = ("dalir", "chosen_candidate")  # [...] index of the executed candidate (0 = clean)
 
 
+def check_imagination(policy: ChunkPolicy, encoder: LatentEncoder, world_model: LatentWorldModel) -> None:
+    """Refuses a world model that cannot imagine ``policy``'s executed actions from ``encoder``'s latents."""
+    if world_model.action_dim != policy.action_dim:
+        raise ValueError(
+            f"the world model takes {world_model.action_dim}-D actions; the policy outputs {policy.action_dim}-D"
+        )
+    if world_model.action_steps != policy.action_steps:
+        raise ValueError(
+            f"the world model imagines {world_model.action_steps} actions; the policy executes {policy.action_steps}"
+        )
+    if world_model.latent_dim != encoder.latent_dim:
+        raise ValueError("the world model and the latent encoder disagree on the latent size")
+
+
 class RerankingActor(TensorDictModuleBase):
     """Samples candidate chunks from a frozen policy, imagines and scores each, executes one.
 
@@ -46,7 +60,7 @@ class RerankingActor(TensorDictModuleBase):
             naming what it lacks), e.g. this library's :class:`~torchrl_dalir.modules.ChunkPolicy3D`
             or a policy of your own (README, "Wrap your own policy").
         encoder, world_model, scorer: the latent imagination module (see
-            :mod:`torchrl_dalir.modules.world_model`).
+            :mod:`torchrl_dalir.modules.world_model`); leave all three out to rerank with a ``critic`` alone.
         config: the reranking settings (:class:`~torchrl_dalir.reranking.RerankingConfig`, by default
             the paper's: 32 point-dropout candidates with probability 0.2, the arg-max); the
             keyword arguments below, when given, replace its settings.
@@ -64,7 +78,8 @@ class RerankingActor(TensorDictModuleBase):
         ensemble: the scorer ensemble trained on imagined latents (needed by
             ``selection.scorer="ensemble"``).
         critic: a :class:`~torchrl_dalir.modules.ChunkCritic` trained on branched outcomes (needed by
-            ``selection.scorer="critic"``, which scores the chunks from the state, without imagination).
+            ``selection.scorer="critic"``, which scores the chunks from the state, without imagination;
+            the default selection when no world model is given).
         selection: the selection rule (default: the paper's arg-max of the state scorer).
             :meth:`from_checkpoints` uses the rule stored in the world-model checkpoint by
             ``examples/calibrate_selection.py`` unless one is passed.
@@ -103,9 +118,9 @@ class RerankingActor(TensorDictModuleBase):
     def __init__(
         self,
         policy: ChunkPolicy,
-        encoder: LatentEncoder,
-        world_model: LatentWorldModel,
-        scorer: TaskCompletionScorer,
+        encoder: LatentEncoder | None = None,
+        world_model: LatentWorldModel | None = None,
+        scorer: TaskCompletionScorer | None = None,
         *,
         config: RerankingConfig | None = None,
         num_candidates: int | None = None,
@@ -129,19 +144,26 @@ class RerankingActor(TensorDictModuleBase):
             common_noise=common_noise,
             candidates=candidates if isinstance(candidates, str) else None,
         )
-        if world_model.action_dim != policy.action_dim:
-            raise ValueError(
-                f"the world model takes {world_model.action_dim}-D actions; the policy outputs {policy.action_dim}-D"
-            )
-        if world_model.action_steps != policy.action_steps:
-            raise ValueError(
-                f"the world model imagines {world_model.action_steps} actions; "
-                f"the policy executes {policy.action_steps}"
-            )
-        if world_model.latent_dim != encoder.latent_dim:
-            raise ValueError("the world model and the latent encoder disagree on the latent size")
+        imagination = (encoder, world_model, scorer)
+        if all(part is None for part in imagination):
+            if critic is None:
+                raise ValueError(
+                    "RerankingActor needs a scorer: the latent encoder, world model and scorer "
+                    "(RerankingActor.from_checkpoints), or a chunk critic (critic=load_chunk_critic(<critic.pt>))"
+                )
+            if config.selection is None:  # the critic is the only scorer there is
+                config = config.updated(selection=SelectionConfig(scorer="critic"))
+        elif any(part is None for part in imagination):
+            raise ValueError("pass the latent encoder, the world model and the scorer together, or none of them")
+        else:
+            check_imagination(policy, encoder, world_model)
         self.config = config
         self.selection = config.selection if config.selection is not None else SelectionConfig()
+        if self.selection.scorer != "critic" and world_model is None:
+            raise ValueError(
+                f"selection {self.selection.name} scores imagined latents: it needs the latent encoder, "
+                "world model and scorer (only selection scorer='critic' works without them)"
+            )
         if self.selection.scorer == "ensemble" and ensemble is None:
             raise ValueError(
                 f"selection {self.selection.name} needs a scorer ensemble; this world model has none "
@@ -170,7 +192,7 @@ class RerankingActor(TensorDictModuleBase):
         self.candidates = (
             candidates if candidates is not None and not isinstance(candidates, str) else candidate_generator(config)
         )
-        self.seed, self.common_noise = seed, config.common_noise
+        self.seed, self.common_noise, self.decisions = seed, config.common_noise, config.decisions
         self.generator = torch.Generator().manual_seed(seed)
 
     def reset(self, seed: int | None = None) -> None:
@@ -295,16 +317,48 @@ class RerankingActor(TensorDictModuleBase):
         chunks = self.sample_candidates(cloud, agent_pos)
         return chunks, self.score(cloud, agent_pos, chunks)
 
+    def reranked(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """Which entries of a decision's ``tensordict`` are reranked (flat ``[B]``): all of them, or with
+        ``config.decisions`` those among their episode's first decisions, counted from ``step_count``
+        (TorchRL's ``StepCounter``) or, for ``decisions=1``, from ``is_init`` (its ``InitTracker``)."""
+        size = tensordict.numel()
+        if not self.decisions:
+            return torch.ones(size, dtype=torch.bool, device=tensordict.device)
+        step_count = tensordict.get(keys.STEP_COUNT, default=None)
+        if step_count is not None:
+            return step_count.reshape(size) // self.policy.action_steps < self.decisions
+        is_init = tensordict.get(keys.IS_INIT, default=None)
+        if is_init is not None and self.decisions == 1:
+            return is_init.reshape(size)
+        raise KeyError(
+            f"reranking only the first {self.decisions} decisions counts them from {keys.STEP_COUNT!r} "
+            f"(add TorchRL's StepCounter to the env){' or is_init (an InitTracker)' if self.decisions == 1 else ''}"
+        )
+
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         cloud, agent_pos = read_observation(self.policy, tensordict, self.in_keys)
         batch = cloud.shape[:-3]
         cloud, agent_pos = cloud.reshape(-1, *cloud.shape[-3:]), agent_pos.reshape(-1, *agent_pos.shape[-2:])
+        rerank = self.reranked(tensordict).to(cloud.device)
+        if rerank.all():
+            chosen, scores, best = self._rerank(cloud, agent_pos)
+        else:  # the others act as the base policy: its own sample, no scores, candidate 0
+            chosen = self.policy.sample(
+                self.policy.encode(cloud, agent_pos), None if self.common_noise else self.generator
+            )
+            scores = chosen.new_full((len(chosen), self.num_candidates), float("nan"))
+            best = torch.zeros(len(chosen), dtype=torch.long, device=chosen.device)
+            if rerank.any():
+                chosen[rerank], scores[rerank], best[rerank] = self._rerank(cloud[rerank], agent_pos[rerank])
+        chunk_key, scores_key, chosen_key = self.out_keys
+        tensordict.set(chunk_key, chosen.reshape(*batch, *chosen.shape[1:]))
+        tensordict.set(scores_key, scores.reshape(*batch, -1))
+        return tensordict.set(chosen_key, best.reshape(batch))
+
+    def _rerank(self, cloud: torch.Tensor, agent_pos: torch.Tensor):
+        """The chosen chunks ``[B, H, A]``, every candidate's score ``[B, K]`` and the chosen indices ``[B]``."""
         chunks = self.sample_candidates(cloud, agent_pos)
         members = self.member_scores(cloud, agent_pos, chunks)
         best = select(members, self.selection, self.generator, actions=chunks[..., self.executed, :])
-        chosen = chunks[torch.arange(len(best)), best]
-        chunk_key, scores_key, chosen_key = self.out_keys
-        tensordict.set(chunk_key, chosen.reshape(*batch, *chosen.shape[1:]))
-        tensordict.set(scores_key, members.mean(1).reshape(*batch, -1))
-        return tensordict.set(chosen_key, best.reshape(batch))
+        return chunks[torch.arange(len(best)), best], members.mean(1), best

@@ -1,0 +1,170 @@
+"""Screen a chunk critic trained on branched outcomes: the base policy against the critic choosing among
+point-dropout candidates at each episode's first decisions, on the same episodes (validation by default).
+
+    python examples/paper/critic_screen.py policy=<run>/checkpoint.pt branched=<collect_branched folder> \\
+        json=docs/results/critic_screen_<run>.json
+    python examples/paper/critic_screen.py ... seed=0 test=true   # test episodes: only for a screen that passed
+
+1. The critic variant: each of ``variants`` (``outcome``: the terminal-label loss alone; ``ranking``: the
+   listwise loss beside it) is measured by its out-of-fold within-decision AUC on the branched decisions
+   (data seeds only, :func:`~torchrl_dalir.training.ranking.cross_validated_auc`); the higher one is kept.
+2. That variant is trained on every branched decision and saved as ``<out>/critic.pt``.
+3. The base policy and :class:`~torchrl_dalir.reranking.RerankingActor` with the critic alone (no world
+   model; the candidates the branched data were made with; ``decisions`` first decisions reranked, then the
+   base policy; common noise, so a kept clean candidate replays the base policy's episode) run the same
+   ``episodes`` episodes of evaluation seed ``seed``. The paired sign test and every episode's outcome go to
+   ``json``.
+
+The rule that decides whether a screen passes is written down before it runs
+(``docs/results/critic_screen_prereg.json``); test episodes (``seed=0``) need ``test=true``.
+"""
+
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchrl_dalir import RerankingActor, receding_horizon
+from torchrl_dalir.checkpoints import load_policy, save_chunk_critic
+from torchrl_dalir.config import check_at_least, check_choice, parse_config
+from torchrl_dalir.data.branched import BranchedOutcomes
+from torchrl_dalir.evaluation.calibration import TEST_SEED
+from torchrl_dalir.evaluation.compare import decision_summary, paired_sign_test, pool_decision_summaries
+from torchrl_dalir.evaluation.success_rate import evaluate
+from torchrl_dalir.reranking import RerankingConfig
+from torchrl_dalir.training.ranking import RankingTrainingConfig, cross_validated_auc, train_ranking_scorer
+from torchrl_dalir.utils import atomic_write, git_commit, weights_digest
+
+VARIANTS = {"outcome": {"ranking": False}, "ranking": {"ranking": True}}
+
+
+@dataclass
+class Config:
+    policy: str = ""  # a policy checkpoint, .../<task>/<policy>_seed<seed>/checkpoint.pt
+    branched: str = ""  # its branched outcomes (a complete collect_branched folder)
+    variants: list[str] = field(default_factory=lambda: ["outcome", "ranking"])
+    folds: int = 10  # out-of-fold groups of episodes for choosing the variant
+    training: RankingTrainingConfig = field(default_factory=RankingTrainingConfig)
+    decisions: int = 1  # rerank each episode's first decisions (the branched data's), then the base policy acts
+    episodes: int = 50
+    seed: int = 1  # evaluation seed: 1 holds the validation episodes, 0 the test episodes
+    test: bool = False  # allow seed 0, after a screen passed by the committed rule
+    actor_seed: int = 0
+    out: str = "outputs/critic_screen"
+    json: str | None = None
+    progress: bool = True
+
+    def __post_init__(self):
+        if not Path(self.policy).is_file():
+            raise FileNotFoundError(f"no policy checkpoint at {self.policy!r}: pass policy=<checkpoint.pt>")
+        if not (Path(self.branched) / "meta.json").is_file():
+            raise FileNotFoundError(
+                f"no branched outcomes at {self.branched!r}: pass branched=<collect_branched folder>"
+            )
+        for variant in self.variants:
+            check_choice("variants entry", variant, VARIANTS)
+        check_at_least("episodes", self.episodes, 1)
+        check_at_least("decisions", self.decisions, 1)
+        if self.seed == TEST_SEED and not self.test:
+            raise ValueError(f"seed={TEST_SEED} holds the test episodes: screen on seed=1; test=true once it passed")
+
+
+def choose_critic(outcomes: BranchedOutcomes, policy, cfg: Config) -> tuple[str, dict]:
+    """The variant with the highest out-of-fold within-decision AUC (the first listed on a tie), and every AUC."""
+    aucs = {
+        variant: cross_validated_auc(outcomes, policy, replace(cfg.training, **VARIANTS[variant]), folds=cfg.folds)
+        for variant in cfg.variants
+    }
+    best = max(cfg.variants, key=lambda v: (np.nan_to_num(aucs[v]["auc"], nan=-1.0), -cfg.variants.index(v)))
+    return best, aucs
+
+
+def main(argv: list[str]) -> dict:
+    cfg = parse_config(Config, argv)
+    policy = load_policy(cfg.policy)
+    outcomes = BranchedOutcomes.load(cfg.branched)
+    if outcomes.meta.policy_digest != weights_digest(policy):
+        raise ValueError(f"{cfg.branched} holds the candidates of another policy than {cfg.policy}")
+    out = Path(cfg.out) / policy.task / Path(cfg.policy).parent.name
+    out.mkdir(parents=True, exist_ok=True)
+
+    start = time.perf_counter()
+    variant, aucs = choose_critic(outcomes, policy, cfg)
+    training = replace(cfg.training, **VARIANTS[variant])
+    critic, metrics = train_ranking_scorer(outcomes, policy, training, held_out=torch.zeros(len(outcomes), dtype=bool))
+    metrics.pop("held_out_logits")
+    save_chunk_critic(out / "critic.pt", critic, policy, {**metrics, "variant": variant, "out_of_fold": aucs})
+    print(
+        f"[critic] {outcomes}: out-of-fold AUC { ({v: round(a['auc'], 3) for v, a in aucs.items()}) }; kept {variant}"
+    )
+    training_seconds = time.perf_counter() - start
+
+    meta = outcomes.meta
+    reranking = RerankingConfig.with_generator(
+        meta.candidates, meta.setting, num_candidates=meta.num_candidates, common_noise=True, decisions=cfg.decisions
+    )
+    actors = {
+        "base policy": (receding_horizon(policy), None),
+        "critic": (
+            receding_horizon(RerankingActor(policy, critic=critic, config=reranking, seed=cfg.actor_seed)),
+            lambda rollout: decision_summary(rollout, policy.action_steps),
+        ),
+    }
+    env_kwargs = {"num_points": policy.num_points, "history": policy.obs_steps}
+    rows = {}
+    for name, (actor, describe) in actors.items():
+        torch.manual_seed(cfg.actor_seed)  # common noise: both draw the clean chunk from this stream
+        begin = time.perf_counter()
+        result = evaluate(
+            actor, policy.task, cfg.episodes, cfg.seed, progress=cfg.progress, describe=describe, **env_kwargs
+        )
+        rows[name] = {
+            "success_rate": result.success_rate,
+            "episodes": len(result.episodes),
+            "seconds": round(time.perf_counter() - begin, 1),
+            "records": result.to_dict()["episodes"],
+        }
+        print(f"[screen] {policy.task} {name}: {result.success_rate:.1%} over {len(result.episodes)} episodes")
+    base, chosen = ([r["success"] for r in rows[m]["records"]] for m in ("base policy", "critic"))
+    paired = paired_sign_test(base, chosen)
+    choices = pool_decision_summaries([r["details"] for r in rows["critic"]["records"]])
+    print(
+        f"[screen] critic won {paired['dalir_only']}, lost {paired['base_only']} (p = {paired['p_value']:.3f}); "
+        f"kept the clean candidate at {choices['clean_chosen']:.0%} of {choices['decisions']} reranked decisions"
+    )
+    payload = {
+        "command": "python examples/paper/critic_screen.py " + " ".join(argv),
+        "commit": git_commit(),
+        "torch_threads": torch.get_num_threads(),
+        "config": asdict(cfg),
+        "task": policy.task,
+        "run": Path(cfg.policy).parent.name,
+        "branched": {
+            "rows": len(outcomes),
+            "split_decisions": int(outcomes.split_decisions().sum()),
+            **asdict(meta),
+        },
+        "critic": {"variant": variant, "out_of_fold": aucs, "train_auc": metrics["train_auc"]},
+        "critic_seconds": round(training_seconds, 1),
+        "reranking": {
+            "num_candidates": reranking.num_candidates,
+            "candidates": reranking.candidates,
+            "setting": reranking.generator_setting,
+            "decisions": reranking.decisions,
+        },
+        "paired": paired,
+        "critic_choices": choices,
+        "methods": rows,
+    }
+    payload["branched"].pop("done_episodes")
+    if cfg.json:
+        atomic_write(cfg.json, json.dumps(payload, indent=1) + "\n")
+    return payload
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,99 @@
+"""Reranking with a chunk critic alone (no world model) and at an episode's first decisions only."""
+
+import dataclasses
+
+import pytest
+import torch
+from conftest import SHORT_REACH, untrained_reach_policy
+from tensordict import TensorDict
+from torchrl.envs import StepCounter
+
+from torchrl_dalir import RerankingActor, keys, make_env, receding_horizon
+from torchrl_dalir.modules import ChunkCritic, LatentEncoder, LatentWorldModel, TaskCompletionScorer
+from torchrl_dalir.reranking import CANDIDATE_SCORES, CHOSEN_CANDIDATE, RerankingConfig, SelectionConfig
+
+POINTS = 40
+
+
+def _critic(policy):
+    torch.manual_seed(1)
+    critic = ChunkCritic(policy.encode(torch.rand(1, 2, POINTS, 3), torch.rand(1, 2, 4)).shape[-1], 4, 8, hidden=16)
+    critic.action_normalizer.fit(torch.rand(20, 4) * 2 - 1)
+    return critic
+
+
+def _observation(batch=3):
+    torch.manual_seed(2)
+    return TensorDict(
+        point_cloud=torch.rand(batch, 2, POINTS, 3), agent_pos=torch.rand(batch, 2, 4), batch_size=[batch]
+    )
+
+
+def test_a_critic_alone_reranks_as_it_does_beside_a_world_model_and_bad_combinations_are_refused():
+    policy = untrained_reach_policy()
+    critic = _critic(policy)
+    encoder = LatentEncoder.from_policy(policy)
+    parts = (
+        encoder,
+        LatentWorldModel(encoder.latent_dim, 4, 8, hidden=16, layers=1, heads=2),
+        TaskCompletionScorer(encoder.latent_dim, hidden=16),
+    )
+    alone = RerankingActor(policy, critic=critic, num_candidates=6, seed=4)
+    assert alone.selection == SelectionConfig(scorer="critic")  # the only scorer there is
+    beside = RerankingActor(
+        policy, *parts, critic=critic, num_candidates=6, seed=4, selection=SelectionConfig("argmax", "critic")
+    )
+    a, b = alone(_observation()), beside(_observation())
+    assert torch.equal(a[keys.ACTION_CHUNK], b[keys.ACTION_CHUNK])
+    assert torch.equal(a[CANDIDATE_SCORES], b[CANDIDATE_SCORES]) and torch.equal(
+        a[CHOSEN_CANDIDATE], b[CHOSEN_CANDIDATE]
+    )
+    with pytest.raises(ValueError, match="needs a scorer"):
+        RerankingActor(policy)
+    with pytest.raises(ValueError, match="together, or none"):
+        RerankingActor(policy, parts[0], parts[1], critic=critic)
+    with pytest.raises(ValueError, match="scores imagined latents"):
+        RerankingActor(policy, critic=critic, selection=SelectionConfig("argmax", "state"))
+    with pytest.raises(ValueError, match="decisions"):
+        RerankingConfig(decisions=-1)
+
+
+def _reach(step_counter: bool):
+    env = make_env(dataclasses.replace(SHORT_REACH, max_steps=40), num_points=POINTS, history=2)
+    return env.append_transform(StepCounter()) if step_counter else env
+
+
+def _rollout(actor, step_counter=False, seed=0):
+    env = _reach(step_counter)
+    torch.manual_seed(seed)
+    td = env.reset(seed=7)
+    rollout = env.rollout(40, receding_horizon(actor), auto_reset=False, tensordict=td)
+    env.close()
+    return rollout
+
+
+@pytest.mark.parametrize("step_counter", [False, True])
+def test_only_the_first_decisions_are_reranked_and_the_rest_is_the_base_policy_own_sampling(step_counter):
+    policy = untrained_reach_policy()
+    critic = _critic(policy)
+    first = 2 if step_counter else 1  # without a StepCounter, only the first decision can be told apart
+    config = RerankingConfig(num_candidates=6, common_noise=True, decisions=first)
+    rollout = _rollout(RerankingActor(policy, critic=critic, config=config, seed=4), step_counter)
+    decisions = rollout[::8]  # 5 decisions of 8 steps
+    scores = decisions[CANDIDATE_SCORES]
+    assert scores[:first].isfinite().all() and scores[first:].isnan().all()
+    assert (decisions[CHOSEN_CANDIDATE][first:] == 0).all()
+    # keeping the clean candidate at the reranked decisions replays the base policy, action for action
+    keep = dataclasses.replace(config, selection=SelectionConfig("margin", "critic", margin=1.0))
+    kept = _rollout(RerankingActor(policy, critic=critic, config=keep, seed=4), step_counter)
+    base = _rollout(policy, step_counter)
+    assert torch.equal(kept[keys.ACTION], base[keys.ACTION])
+    if first == 1 and (decisions[CHOSEN_CANDIDATE][0] != 0).item():  # a switch at decision 0 changes the episode
+        assert not torch.equal(rollout[keys.ACTION][:8], base[keys.ACTION][:8])
+
+
+def test_counting_decisions_past_the_first_needs_a_step_counter():
+    policy = untrained_reach_policy()
+    config = RerankingConfig(num_candidates=4, decisions=2)
+    with pytest.raises(KeyError, match="StepCounter"):
+        _rollout(RerankingActor(policy, critic=_critic(policy), config=config), step_counter=False)
