@@ -221,3 +221,91 @@ def test_critic_screen_trains_the_better_variant_and_pairs_it_with_the_base_poli
             assert (c["steps"], c["episode_return"]) == (b["steps"], b["episode_return"])
     run = tmp_path / "screen" / policy.task / Path(checkpoint).parent.name
     assert load_chunk_critic(run / "critic.pt", policy=policy).metrics["variant"] == result["critic"]["variant"]
+
+
+def test_distance_hinge_exact_values_and_no_hinge_for_the_executed_chunk_itself():
+    from torchrl_dalir.modules import ChunkCritic
+    from torchrl_dalir.objectives import DistanceHingeLoss
+
+    torch.manual_seed(0)
+    critic = ChunkCritic(cond_dim=6, action_dim=4, action_steps=8, hidden=16)
+    critic.action_normalizer.fit(torch.rand(50, 4) * 4 - 2)
+    cond, executed = torch.randn(5, 6), torch.rand(5, 8, 4)
+    label = torch.tensor([1.0, 0, 1, 0, 1])
+    same = TensorDict(
+        {
+            "condition": cond,
+            "executed_actions": executed,
+            "perturbed_actions": executed.unsqueeze(1).expand(5, 3, 8, 4),
+            "terminal_label": label,
+        },
+        [5],
+    )
+    losses = DistanceHingeLoss(critic, scale=2.0)(same)
+    assert losses["loss_hinge"] == 0  # a chunk at distance 0 sits exactly at the margin
+    q = critic(cond, executed.unsqueeze(1))[:, 0]
+    torch.testing.assert_close(losses["loss_outcome"], torch.nn.functional.binary_cross_entropy_with_logits(q, label))
+    perturbed = executed.unsqueeze(1) + torch.randn(5, 3, 8, 4) * 0.1
+    losses = DistanceHingeLoss(critic, scale=2.0, hinge_weight=0.5)(same.set("perturbed_actions", perturbed))
+    n = critic.action_normalizer
+    distance = (n(perturbed) - n(executed).unsqueeze(1)).pow(2).mean((-2, -1)).sqrt()
+    expected = 0.5 * torch.relu(critic(cond, perturbed) - (q.unsqueeze(1) - 2.0 * distance)).mean()
+    torch.testing.assert_close(losses["loss_hinge"], expected)
+
+
+@pytest.mark.parametrize("negatives", ["noise", "policy"])
+def test_mixed_data_critic_learns_the_hinge_and_is_scored_on_branched_decisions(collected, trained_policy, negatives):
+    from torchrl_dalir.checkpoints import load_policy
+    from torchrl_dalir.training.ranking import MixedCriticConfig, critic_auc, train_mixed_critic
+
+    _, checkpoint = trained_policy
+    policy = load_policy(checkpoint)
+    cfg = MixedCriticConfig(negatives=negatives, num_negatives=3, decisions=40, hidden=32, steps=200, noise_std=0.3)
+    critic, metrics = train_mixed_critic(collected, policy, cfg)
+    assert metrics["decisions"] == min(40, metrics["decisions"]) and metrics["decisions"] > 10
+    start, end = metrics["loss_start"], metrics["loss_end"]
+    assert end["loss_hinge"] + end["loss_outcome"] < start["loss_hinge"] + start["loss_outcome"]
+    rows = TensorDict(
+        {
+            "point_cloud": torch.rand(4, 2, 64, 3),
+            "agent_pos": torch.rand(4, 2, 4),
+            "action_chunk": torch.rand(4, 5, 16, 4) * 2 - 1,
+            "success": torch.tensor([[1, 0, 0, 0, 0], [1, 1, 1, 1, 1], [0, 1, 0, 1, 0], [0] * 5]).bool(),
+        },
+        [4],
+    )
+    measured = critic_auc(critic, rows, policy)
+    assert measured["split_decisions"] == 2 and 0 <= measured["auc"] <= 1
+
+
+def test_script_measures_imagined_inputs_the_paper_scorers_and_the_no_simulator_critics(
+    collected, trained_world_model, tmp_path
+):
+    import runpy
+    from pathlib import Path
+
+    _, world_model, checkpoint = trained_world_model
+    script = Path(__file__).resolve().parents[1] / "examples" / "paper" / "branched_ranking.py"
+    main = runpy.run_path(str(script))["main"]
+    argv = [
+        f"policy={checkpoint}",
+        "episodes=2",
+        "num_candidates=2",
+        "stride=8",
+        "training.steps=5",
+        "variants=[outcome_imagined]",
+        f"out={tmp_path}",
+        "progress=false",
+    ]
+    with pytest.raises(ValueError, match="world_model="):
+        main(argv)
+    result = main([*argv, f"world_model={world_model}", f"mixed={collected.root}", "mixed_training.steps=5"])
+    assert result["variants"]["outcome_imagined"]["config"]["input"] == "imagined"
+    assert {"paper_state_scorer", "paper_ensemble_scorer", "clean_first"} <= set(result["reference_aucs"])
+    critics = result["mixed_data_critics"]
+    assert set(critics) == {"mixed_labels", "mixed_noise_hinge", "mixed_policy_hinge"}
+    assert (
+        critics["mixed_labels"]["config"]["hinge_weight"] == 0
+        and critics["mixed_labels"]["loss_end"]["loss_hinge"] == 0
+    )
+    assert all(c["split_decisions"] == result["split_decisions"] for c in critics.values())

@@ -11,8 +11,16 @@ Collects (or resumes) the branched outcomes of ``policy`` under ``<out>/<task>/<
 (:func:`~torchrl_dalir.training.ranking.train_ranking_scorer`): ``ranking`` (listwise loss beside
 the terminal-label loss) and ``outcome`` (the terminal-label loss alone), both on the current
 state and the chunk, on a held-out share of the episodes and out of fold (every episode scored by a
-scorer trained on the others), beside two scores that need no training. Prints a markdown table;
-``json`` writes it with the data's counts.
+scorer trained on the others), beside two scores that need no training. With ``world_model=`` (the
+policy's), ``ranking_imagined`` and ``outcome_imagined`` read the imagined latent instead, as the paper's
+scorer does, and the world model's own scorers are measured too. With ``mixed=`` (the policy's mixed
+data), the no-simulator route: chunk critics trained on the mixed data alone (terminal labels, with and
+without a distance hinge against noise-perturbed chunks or the policy's own candidates,
+:class:`~torchrl_dalir.objectives.DistanceHingeLoss`), measured on every branched decision that splits.
+Prints a markdown table; ``json`` writes it with the data's counts.
+
+    python examples/paper/branched_ranking.py policy=... world_model=<run>/world_model.pt \
+        mixed=<out>/data/<task>/mixed_fm_seed0 variants=[ranking,outcome,ranking_imagined,outcome_imagined]
 """
 
 import json
@@ -23,16 +31,36 @@ from pathlib import Path
 
 import torch
 
-from torchrl_dalir.checkpoints import load_policy
+from torchrl_dalir import RerankingActor
+from torchrl_dalir.checkpoints import load_policy, load_world_model
 from torchrl_dalir.config import check_choice, parse_config
 from torchrl_dalir.data.branched import collect_branched
+from torchrl_dalir.data.storage import TrajectoryDataset
 from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
 from torchrl_dalir.modules.config import executed_slice
-from torchrl_dalir.reranking import RerankingConfig
-from torchrl_dalir.training.ranking import RankingTrainingConfig, cross_validated_auc, train_ranking_scorer
+from torchrl_dalir.reranking import RerankingConfig, SelectionConfig
+from torchrl_dalir.training.ranking import (
+    MixedCriticConfig,
+    RankingTrainingConfig,
+    critic_auc,
+    cross_validated_auc,
+    train_mixed_critic,
+    train_ranking_scorer,
+)
 from torchrl_dalir.utils import atomic_write, git_commit
 
-VARIANTS = {"ranking": {"ranking": True}, "outcome": {"ranking": False}}
+VARIANTS = {
+    "ranking": {"ranking": True},
+    "outcome": {"ranking": False},
+    "ranking_imagined": {"ranking": True, "input": "imagined"},  # these two need world_model=
+    "outcome_imagined": {"ranking": False, "input": "imagined"},
+}
+# The no-simulator route (mixed=): chunk critics of the mixed data, never trained on a branched decision.
+MIXED_VARIANTS = {
+    "mixed_labels": {"hinge_weight": 0.0},
+    "mixed_noise_hinge": {"negatives": "noise"},
+    "mixed_policy_hinge": {"negatives": "policy"},
+}
 
 
 def reference_aucs(outcomes, policy) -> dict:
@@ -50,6 +78,17 @@ def reference_aucs(outcomes, policy) -> dict:
     }
 
 
+def paper_scorer_aucs(outcomes, policy, world_model: str) -> dict:
+    """Within-decision AUCs of the world model's own scorers on the imagined latents of the candidates
+    (the paper's state scorer and the scorer ensemble's mean), on the decisions that split."""
+    rows, aucs = outcomes.rows, {}
+    for scorer in ("state", "ensemble"):
+        actor = RerankingActor.on_policy(policy, world_model, selection=SelectionConfig(scorer=scorer))
+        scores = actor.score(rows["point_cloud"], rows["agent_pos"], rows["action_chunk"])
+        aucs[f"paper_{scorer}_scorer"] = within_decision_auc(scores.tolist(), rows["success"].tolist())
+    return aucs
+
+
 @dataclass
 class Config:
     policy: str = ""  # a policy checkpoint, .../<task>/<policy>_seed<seed>/checkpoint.pt
@@ -63,6 +102,10 @@ class Config:
     data_seed: int = 500_000  # the episodes' reset seeds start here (data seeds, never evaluation seeds)
     variants: list[str] = field(default_factory=lambda: ["ranking", "outcome"])
     training: RankingTrainingConfig = field(default_factory=RankingTrainingConfig)
+    folds: int = 0  # out-of-fold groups of episodes (0: one per episode)
+    world_model: str | None = None  # the policy's world model: the imagined-latent variants and the paper's scorer
+    mixed: str | None = None  # the policy's mixed data: the no-simulator critics (MIXED_VARIANTS)
+    mixed_training: MixedCriticConfig = field(default_factory=MixedCriticConfig)
     out: str = "outputs/branched"
     json: str | None = None
     progress: bool = True
@@ -73,6 +116,8 @@ class Config:
         self.reranking()  # an unknown generator fails here
         for variant in self.variants:
             check_choice("variants entry", variant, VARIANTS)
+            if VARIANTS[variant].get("input") == "imagined" and self.world_model is None:
+                raise ValueError(f"variant {variant} reads imagined latents: pass world_model=<world_model.pt>")
 
     def reranking(self) -> RerankingConfig:
         return RerankingConfig(self.num_candidates, self.generator, self.dropout, self.noise_std)
@@ -95,14 +140,28 @@ def main(argv: list[str]) -> dict:
     )
     collection_seconds = time.perf_counter() - start
     split = outcomes.split_decisions()
+    imagination = {}
+    if cfg.world_model is not None:
+        parts = load_world_model(cfg.world_model, policy=policy)
+        imagination = {"encoder": parts.encoder, "world_model": parts.world_model}
     results = {}
     for variant in cfg.variants:
         training = replace(cfg.training, **VARIANTS[variant])
-        _, metrics = train_ranking_scorer(outcomes, policy, training)
+        _, metrics = train_ranking_scorer(outcomes, policy, training, **imagination)
         metrics.pop("held_out_logits")
-        results[variant] = {**metrics, "cross_validated": cross_validated_auc(outcomes, policy, training)}
+        cv = cross_validated_auc(outcomes, policy, training, folds=cfg.folds, **imagination)
+        results[variant] = {**metrics, "cross_validated": cv}
     print(f"{outcomes}: {int(split.sum())} of {len(outcomes)} decisions split; collected in {collection_seconds:.0f} s")
     baselines = reference_aucs(outcomes, policy)
+    if cfg.world_model is not None:
+        baselines.update(paper_scorer_aucs(outcomes, policy, cfg.world_model))
+    mixed = {}
+    if cfg.mixed is not None:
+        dataset = TrajectoryDataset.load(cfg.mixed, task=policy.task)
+        for variant, settings in MIXED_VARIANTS.items():
+            critic, metrics = train_mixed_critic(dataset, policy, replace(cfg.mixed_training, **settings))
+            mixed[variant] = {**metrics, **critic_auc(critic, outcomes, policy)}
+            print(f"no-simulator critic {variant}: within-decision AUC {mixed[variant]['auc']:.3f}")
     print(f"references on the split decisions: {baselines}")
     print(
         "| variant | input | train AUC (split) | held-out AUC (split) | out-of-fold AUC, a fold per episode (split) |\n"
@@ -127,6 +186,7 @@ def main(argv: list[str]) -> dict:
         "collection_seconds_this_attempt": round(collection_seconds),
         "reference_aucs": baselines,
         "variants": results,
+        "mixed_data_critics": mixed,
     }
     if cfg.json:
         atomic_write(cfg.json, json.dumps(payload, indent=1) + "\n")

@@ -77,6 +77,11 @@ class TrajectoryWindows:
     def __len__(self) -> int:
         return len(self.anchors)
 
+    @property
+    def steps(self) -> torch.Tensor:
+        """The step ``t`` that anchors each window (its index in its trajectory)."""
+        return self._t
+
     def sample(self, batch_size: int, generator: torch.Generator | None = None) -> TensorDict:
         return self[torch.randint(len(self), (batch_size,), generator=generator)]
 

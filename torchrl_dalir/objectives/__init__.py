@@ -4,6 +4,7 @@ from torchrl_dalir.objectives.chunk_generation import ChunkGenerationLoss
 from torchrl_dalir.objectives.common import KeyedLossModule
 from torchrl_dalir.objectives.consistency_flow_matching import ConsistencyFlowMatchingLoss
 from torchrl_dalir.objectives.diffusion import DiffusionLoss
+from torchrl_dalir.objectives.distance_hinge import DistanceHingeLoss
 from torchrl_dalir.objectives.flow_matching import FlowMatchingLoss
 from torchrl_dalir.objectives.imagined_completion import ImaginedCompletionLoss
 from torchrl_dalir.objectives.latent_dynamics import LatentDynamicsLoss
@@ -14,6 +15,7 @@ __all__ = [
     "ChunkGenerationLoss",
     "ConsistencyFlowMatchingLoss",
     "DiffusionLoss",
+    "DistanceHingeLoss",
     "FlowMatchingLoss",
     "ImaginedCompletionLoss",
     "KeyedLossModule",

@@ -24,11 +24,16 @@ from torch import nn
 from torchrl_dalir import keys
 from torchrl_dalir.config import check_at_least, check_choice
 from torchrl_dalir.data.branched import RESET_SEED, SUCCESS, BranchedOutcomes
+from torchrl_dalir.data.storage import TrajectoryDataset
+from torchrl_dalir.data.windows import TrajectoryWindows
 from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
 from torchrl_dalir.modules.chunk_critic import ChunkCritic
 from torchrl_dalir.modules.config import executed_slice
 from torchrl_dalir.modules.world_model import TaskCompletionScorer
+from torchrl_dalir.objectives.distance_hinge import CONDITION, EXECUTED, PERTURBED, DistanceHingeLoss
 from torchrl_dalir.objectives.within_state_ranking import CANDIDATE_FEATURES, WithinStateRankingLoss, split_decisions
+from torchrl_dalir.reranking.candidates import candidate_generator
+from torchrl_dalir.reranking.config import RerankingConfig
 
 INPUTS = ("state_chunk", "imagined")
 
@@ -76,13 +81,18 @@ def candidate_features(
     """What the scorer reads of each candidate of branched decisions ``rows``: ``[B, K, F]`` (``state_chunk``:
     ``critic``'s features of the policy's condition and the executed actions; ``imagined``: the imagined latent)."""
     cloud, agent_pos = rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]
-    executed = rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]  # [B, K, k, A]
+    executed = _executed(rows, policy)
     if input == "state_chunk":
         return critic.features(policy.encode(cloud, agent_pos), executed)
     if encoder is None or world_model is None:
         raise ValueError("input=imagined needs the world model and its latent encoder")
     latent = encoder(cloud[:, -1], agent_pos[:, -1]).unsqueeze(1).expand(-1, executed.shape[1], -1)
     return world_model.imagine(latent, executed)
+
+
+def _executed(rows: TensorDict, policy) -> torch.Tensor:
+    """The executed actions ``[B, K, k, A]`` of branched decisions' candidate chunks."""
+    return rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]
 
 
 def _held_out(rows: TensorDict, fraction: float) -> torch.Tensor:
@@ -108,7 +118,7 @@ def train_ranking_scorer(
     training and the held-out decisions that split (with their counts), and the held-out logits."""
     torch.manual_seed(cfg.seed)
     rows = (outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes).to(device)
-    executed = rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]
+    executed = _executed(rows, policy)
     held_out = (_held_out(rows, cfg.held_out_fraction) if held_out is None else held_out).to(device)
     critic = None
     if cfg.input == "state_chunk":
@@ -185,4 +195,117 @@ def cross_validated_auc(
         "folds": folds or len(seeds),
         "split_decisions": int(split.sum()),
         "auc": within_decision_auc(logits[scored].tolist(), success[scored].tolist()),
+    }
+
+
+NEGATIVES = ("noise", "policy")
+
+
+@dataclass
+class MixedCriticConfig:
+    """The no-simulator route: a chunk critic on mixed data's recorded decisions (:class:`DistanceHingeLoss`).
+
+    Args:
+        negatives: the perturbed chunks of each recorded state: ``noise`` (Gaussian noise of ``noise_std``
+            normalised action units on the executed chunk, VGAS's) or ``policy`` (the policy's own point-dropout
+            candidates there, the chunks the reranker will rank).
+        num_negatives: ``M``, perturbed chunks per state.
+        noise_std: the ``noise`` negatives' standard deviation, in normalised action units ([-1, 1] range).
+        scale, hinge_weight: the hinge's margin per unit of distance (logits) and its weight (0: labels only).
+        decisions: at most this many recorded decisions (states at every ``action_steps``-th step), drawn at random.
+        hidden, steps, batch_size, lr, weight_decay: the critic MLP and AdamW.
+        seed: the decisions drawn, the negatives, initialisation and batch order.
+    """
+
+    negatives: str = "noise"
+    num_negatives: int = 7
+    noise_std: float = 0.1
+    scale: float = 1.0
+    hinge_weight: float = 1.0
+    decisions: int = 4000
+    hidden: int = 128
+    steps: int = 1500
+    batch_size: int = 64
+    lr: float = 1e-3
+    weight_decay: float = 1e-3
+    seed: int = 0
+
+    def __post_init__(self):
+        check_choice("negatives", self.negatives, NEGATIVES)
+        for name in ("num_negatives", "decisions", "hidden", "steps", "batch_size"):
+            check_at_least(name, getattr(self, name), 1)
+
+
+@torch.no_grad()
+def recorded_decisions(dataset: TrajectoryDataset, policy, cfg: MixedCriticConfig, critic: ChunkCritic) -> TensorDict:
+    """The decisions of ``dataset`` that :class:`DistanceHingeLoss` reads: each state's condition, executed
+    chunk, perturbed chunks and terminal label (at most ``cfg.decisions`` states, one every ``action_steps``)."""
+    windows = TrajectoryWindows(dataset, policy.obs_steps, policy.horizon, policy.action_steps)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    at_decision = torch.nonzero(windows.steps % policy.action_steps == 0).squeeze(-1)
+    chosen = at_decision[torch.randperm(len(at_decision), generator=generator)[: cfg.decisions]]
+    executed_part = executed_slice(policy.obs_steps, policy.action_steps)
+    parts = []
+    for index in chosen.split(256):
+        batch = windows[index]
+        cloud, agent_pos = batch[keys.POINT_CLOUD], batch[keys.AGENT_POS]
+        executed = batch[keys.ACTION_CHUNK][:, executed_part]
+        if cfg.negatives == "policy":
+            dropout = candidate_generator(RerankingConfig(num_candidates=cfg.num_negatives + 1))
+            cond = dropout.conditions(policy, cloud, agent_pos, cfg.num_negatives + 1, generator)
+            perturbed = policy.sample(cond[:, 1:], generator)[:, :, executed_part]
+        else:
+            normalize = critic.action_normalizer
+            noise = torch.randn((len(index), cfg.num_negatives, *executed.shape[1:]), generator=generator)
+            perturbed = normalize.unnormalize(normalize(executed).unsqueeze(1) + cfg.noise_std * noise)
+        parts.append(
+            TensorDict(
+                {
+                    CONDITION: policy.encode(cloud, agent_pos),
+                    EXECUTED: executed,
+                    PERTURBED: perturbed,
+                    keys.TERMINAL_LABEL: batch[keys.TERMINAL_LABEL].reshape(-1),
+                },
+                [len(index)],
+            )
+        )
+    return torch.cat(parts)
+
+
+def train_mixed_critic(dataset: TrajectoryDataset, policy, cfg: MixedCriticConfig) -> tuple[ChunkCritic, dict]:
+    """A chunk critic trained on ``dataset``'s recorded decisions with :class:`DistanceHingeLoss`: no branched
+    outcome, no simulator. Returns it and the losses at the start and the end."""
+    torch.manual_seed(cfg.seed)
+    windows = TrajectoryWindows(dataset, policy.obs_steps, policy.horizon, policy.action_steps)
+    cond_dim = policy.encode(*(windows[[0]][k] for k in (keys.POINT_CLOUD, keys.AGENT_POS))).shape[-1]
+    critic = ChunkCritic(cond_dim, policy.action_dim, policy.action_steps, hidden=cfg.hidden)
+    critic.action_normalizer.fit(dataset.rows[keys.ACTION])
+    table = recorded_decisions(dataset, policy, cfg, critic)
+    loss_module = DistanceHingeLoss(critic, cfg.scale, cfg.hinge_weight)
+    optimizer = torch.optim.AdamW(critic.scorer.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    with torch.no_grad():
+        first = {k: float(v) for k, v in loss_module(table).items()}
+    for _ in range(cfg.steps):
+        batch = table[torch.randint(len(table), (min(cfg.batch_size, len(table)),), generator=generator)]
+        loss = sum(loss_module(batch).values())
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    critic.eval()
+    with torch.no_grad():
+        last = {k: float(v) for k, v in loss_module(table).items()}
+    metrics = {"config": asdict(cfg), "decisions": len(table), "loss_start": first, "loss_end": last}
+    return critic, metrics
+
+
+@torch.no_grad()
+def critic_auc(critic: ChunkCritic, outcomes: BranchedOutcomes, policy) -> dict:
+    """The within-decision AUC of a trained ``critic`` on every branched decision that splits (none of which it
+    was trained on, for a critic of the mixed data)."""
+    rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
+    logits = critic(policy.encode(rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]), _executed(rows, policy))
+    return {
+        "split_decisions": int(split_decisions(rows[SUCCESS]).sum()),
+        "auc": within_decision_auc(logits.tolist(), rows[SUCCESS].tolist()),
     }
