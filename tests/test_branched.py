@@ -1,6 +1,8 @@
 """Branched outcomes (data from the same state) and the scorer that ranks within a state."""
 
 import math
+import runpy
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,6 +15,13 @@ from torchrl_dalir.modules import PolicyConfig, TaskCompletionScorer, make_polic
 from torchrl_dalir.objectives.within_state_ranking import WithinStateRankingLoss
 from torchrl_dalir.reranking import RerankingConfig
 from torchrl_dalir.training.ranking import RankingTrainingConfig, cross_validated_auc, train_ranking_scorer
+
+PAPER_SCRIPTS = Path(__file__).resolve().parents[1] / "examples" / "paper"
+
+
+def script_main(name: str):
+    """The ``main`` of ``examples/paper/<name>.py``."""
+    return runpy.run_path(str(PAPER_SCRIPTS / f"{name}.py"))["main"]
 
 
 def test_ranking_loss_exact_values_and_only_split_decisions_rank():
@@ -107,13 +116,9 @@ def test_ranking_scorer_trains_and_reports_held_out_auc():
 
 def test_script_collects_trains_both_variants_and_reruns_from_the_stored_data(trained_policy, tmp_path):
     import json
-    import runpy
-    from pathlib import Path
 
     _, checkpoint = trained_policy
-    main = runpy.run_path(str(Path(__file__).resolve().parents[1] / "examples" / "paper" / "branched_ranking.py"))[
-        "main"
-    ]
+    main = script_main("branched_ranking")
     argv = [
         f"policy={checkpoint}",
         "episodes=2",
@@ -178,8 +183,6 @@ def test_actor_selects_by_the_chunk_critic_and_its_checkpoint_reloads_identical(
 
 def test_critic_screen_trains_the_better_variant_and_pairs_it_with_the_base_policy(trained_policy, tmp_path):
     import json
-    import runpy
-    from pathlib import Path
 
     from torchrl_dalir.checkpoints import load_chunk_critic, load_policy
 
@@ -195,8 +198,7 @@ def test_critic_screen_trains_the_better_variant_and_pairs_it_with_the_base_poli
         seed=7,
         progress=False,
     )
-    script = Path(__file__).resolve().parents[1] / "examples" / "paper" / "critic_screen.py"
-    main = runpy.run_path(str(script))["main"]
+    main = script_main("critic_screen")
     argv = [
         f"policy={checkpoint}",
         f"branched={tmp_path / 'branched'}",
@@ -281,12 +283,9 @@ def test_mixed_data_critic_learns_the_hinge_and_is_scored_on_branched_decisions(
 def test_script_measures_imagined_inputs_the_paper_scorers_and_the_no_simulator_critics(
     collected, trained_world_model, tmp_path
 ):
-    import runpy
-    from pathlib import Path
 
     _, world_model, checkpoint = trained_world_model
-    script = Path(__file__).resolve().parents[1] / "examples" / "paper" / "branched_ranking.py"
-    main = runpy.run_path(str(script))["main"]
+    main = script_main("branched_ranking")
     argv = [
         f"policy={checkpoint}",
         "episodes=2",
