@@ -97,3 +97,41 @@ def test_counting_decisions_past_the_first_needs_a_step_counter():
     config = RerankingConfig(num_candidates=4, decisions=2)
     with pytest.raises(KeyError, match="StepCounter"):
         _rollout(RerankingActor(policy, critic=_critic(policy), config=config), step_counter=False)
+
+
+def _saved_critic(policy, path):
+    from torchrl_dalir.checkpoints import save_chunk_critic
+
+    cloud = torch.rand(1, policy.obs_steps, policy.num_points, 3)
+    cond = policy.encode(cloud, torch.rand(1, policy.obs_steps, policy.state_dim))
+    critic = ChunkCritic(cond.shape[-1], policy.action_dim, policy.action_steps, hidden=16)
+    critic.action_normalizer.fit(torch.rand(20, policy.action_dim) * 2 - 1)
+    save_chunk_critic(path, critic, policy, {})
+    return path
+
+
+def test_evaluation_and_calibration_take_a_critic_and_rerank_the_first_decisions_only(trained_world_model, tmp_path):
+    from torchrl_dalir.checkpoints import load_policy
+    from torchrl_dalir.evaluation.calibration import GRIDS, calibrate
+    from torchrl_dalir.evaluation.compare import evaluate_checkpoints
+    from torchrl_dalir.pipeline.config import PipelineConfig
+
+    _, world_model, policy_path = trained_world_model
+    critic = _saved_critic(load_policy(policy_path), tmp_path / "critic.pt")
+    reranking = RerankingConfig(num_candidates=3, decisions=2, common_noise=True)  # 2 > 1: a StepCounter counts
+    common = dict(episodes=2, seed=1, progress=False, reranking=reranking)
+    with pytest.raises(ValueError, match="or a critic"):
+        evaluate_checkpoints(policy_path, None, methods=["dalir"], **common)
+    with pytest.raises(ValueError, match="needs a world_model_path"):
+        evaluate_checkpoints(policy_path, None, methods=["argmax"], critic=critic, **common)
+    rows = evaluate_checkpoints(policy_path, None, critic=critic, methods=["base", "dalir", "random"], **common)
+    assert rows["DALI-R"]["selection"] == "argmax(critic)"  # no world model: the critic alone
+    for method in ("DALI-R", "random candidate"):
+        assert all(r["details"]["decisions"] == min(2, -(-r["steps"] // 8)) for r in rows[method]["records"])
+    with pytest.raises(ValueError, match="pass critic="):
+        calibrate(policy_path, world_model, grid=GRIDS["critic"], write=False, **common)
+    record = calibrate(policy_path, world_model, grid=GRIDS["critic"], write=False, critic=critic, **common)
+    assert [e["name"] for e in record["entries"]] == ["margin(ensemble, k=1, margin=1)", "argmax(critic)"]
+    with pytest.raises(ValueError, match="branched_episodes >= 2"):
+        PipelineConfig(task="reach", calibration_grid="critic")
+    assert PipelineConfig(task="reach", rerank_decisions=1).reranking().decisions == 1

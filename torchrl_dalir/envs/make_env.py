@@ -6,7 +6,7 @@ from functools import cache
 
 import torch
 from torchrl.data import Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase, GymWrapper, InitTracker, ParallelEnv, TransformedEnv
+from torchrl.envs import EnvBase, GymWrapper, InitTracker, ParallelEnv, StepCounter, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.gym_like import default_info_dict_reader
 
@@ -27,6 +27,7 @@ def make_env(
     history: int = 1,
     pixels: int = 0,
     decision_period: int = 1,
+    step_counter: bool = False,
     device: str | torch.device = "cpu",
 ) -> EnvBase:
     """Builds a TorchRL env for a benchmark task (``door``, ``pen``, ``disassemble``, ...).
@@ -65,6 +66,8 @@ def make_env(
             steps; the episodes are the same, with about ``k / history`` times fewer renders (if ``k > history``). For
             evaluation, where nothing else reads the clouds (:func:`~torchrl_dalir.evaluation.evaluate`
             sets it); the policies and DALI-R's actor refuse a NaN cloud, so a decision at another step fails loudly.
+        step_counter: add TorchRL's ``StepCounter``: ``step_count``, the steps since the episode's start (what
+            ``RerankingConfig(decisions=n)`` counts decisions by, for ``n > 1``).
         device: where the env's tensors live.
 
     Example:
@@ -90,6 +93,8 @@ def make_env(
     env = GymWrapper(simulator, device=device)
     env.set_info_dict_reader(default_info_dict_reader(list(info_spec.keys()), spec=info_spec))
     env = TransformedEnv(env, InitTracker())
+    if step_counter:
+        env.append_transform(StepCounter())
     if history > 1:
         append_history(env, history, [(keys.AGENT_POS, -2)] + ([(keys.POINT_CLOUD, -3)] if render else []))
     if seed is not None and not seed_stride:

@@ -52,10 +52,13 @@ COMPARISON_GRID = (
 # sign test's p-value needs no correction for the best-of-nine choice (the winner's curse), and the
 # calibration runs two entries instead of nine.
 ARGMAX_GRID = (MARGIN_GRID[0], SelectionConfig("argmax", "ensemble"))
+# One alternative as well: the arg-max of a chunk critic trained on branched outcomes (needs critic=).
+CRITIC_GRID = (MARGIN_GRID[0], SelectionConfig("argmax", "critic"))
 GRIDS = {
     "margin": MARGIN_GRID,
     "all": MARGIN_GRID + COMPARISON_GRID,
     "argmax": ARGMAX_GRID,
+    "critic": CRITIC_GRID,
 }  # by name, for configurations
 # calibrate_on_failures: the base policy's validation failures that the screen waits for (10:
 # 4 won and none lost is then possible, and 7 / 1), the fewest and the most episodes it runs, and
@@ -104,7 +107,16 @@ def calibrate(
     world model without a scorer ensemble, before any episode.
     """
     confirm_seed = seed + 1 if confirm_seed is None else confirm_seed
-    _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed if confirm_episodes else None)
+    _check_calibration(
+        world_model_path,
+        grid,
+        rule,
+        alpha,
+        seed,
+        test_seed,
+        confirm_seed if confirm_episodes else None,
+        evaluate_kwargs.get("critic"),
+    )
     common = dict(episodes=episodes, seed=seed, **evaluate_kwargs)
     base = evaluate_checkpoints(policy_path, world_model_path, methods=["base"], **common)[BASE]
     base_successes = [r["success"] for r in base["records"]]
@@ -197,7 +209,9 @@ def calibrate_on_failures(
         check_at_least(name, value, 1)
     check_at_least("max_episodes", max_episodes, min_episodes)
     confirm_seed = seed + 1 if confirm_seed is None else confirm_seed
-    _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed)
+    _check_calibration(
+        world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed, evaluate_kwargs.get("critic")
+    )
 
     def enough(records: list) -> bool:  # checked at block ends only
         return (
@@ -316,10 +330,14 @@ def _confirm(
     }
 
 
-def _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed) -> None:
+def _check_calibration(world_model_path, grid, rule, alpha, seed, test_seed, confirm_seed, critic=None) -> None:
     """Refuses, before any episode: ``alpha`` outside (0, 1], the test seed as a validation seed, a
-    confirmation on the screen's own seed, a ``rule`` no grid entry has, and ensemble rules on a
-    world model without a scorer ensemble (``confirm_seed=None``: no confirmation)."""
+    confirmation on the screen's own seed, a ``rule`` no grid entry has, critic rules without a ``critic``,
+    and ensemble rules on a world model without a scorer ensemble (``confirm_seed=None``: no confirmation)."""
+    if critic is None and any(entry.scorer == "critic" for entry in grid):
+        raise ValueError(
+            "the grid holds critic rules: pass critic=<critic.pt> (the main job's branched stage trains one)"
+        )
     if not 0 < alpha <= 1:
         raise ValueError(f"alpha is a p-value threshold in (0, 1], got {alpha}")
     if test_seed in [seed, *([confirm_seed] if confirm_seed is not None else [])]:

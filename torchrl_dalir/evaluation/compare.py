@@ -11,9 +11,10 @@ import torch
 from scipy.stats import binomtest
 from tensordict import TensorDictBase
 
-from torchrl_dalir.checkpoints import load_policy, load_world_model
+from torchrl_dalir.checkpoints import load_chunk_critic, load_policy, load_world_model
 from torchrl_dalir.config import check_at_least, check_probability
 from torchrl_dalir.evaluation.success_rate import evaluate
+from torchrl_dalir.modules.chunk_critic import ChunkCritic
 from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.reranking import RandomCandidateActor, RerankingActor, RerankingConfig, SearchConfig
 from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
@@ -35,7 +36,7 @@ METHODS = {
     "random": RANDOM,
     "dropout": DROPOUT,
 }  # short names for command lines
-RERANKING = ("dalir", "argmax", "random")  # the methods that choose among candidates: they need a world model
+RERANKING = ("dalir", "argmax", "random")  # the methods that choose among candidates: a world model or a critic
 COMMON_NOISE = (
     True  # evaluations sample DALI-R's clean candidate as the base policy does (RerankingActor's common_noise)
 )
@@ -91,6 +92,7 @@ def evaluate_checkpoints(
     video_dir: str | Path | None = None,
     episode_indices: list[int] | None = None,
     stop_when: Callable[[list], bool] | None = None,
+    critic: ChunkCritic | str | Path | None = None,
 ) -> dict[str, dict]:
     """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` is given,
     with 8-of-16 receding-horizon execution on the same ``episodes`` evaluation episodes.
@@ -121,6 +123,10 @@ def evaluate_checkpoints(
     ``episode_indices`` runs those episodes of ``seed`` instead of the first ``episodes``, and
     ``stop_when`` ends a method's episodes early (both as in
     :func:`~torchrl_dalir.evaluation.success_rate.evaluate`); ``episodes`` in a row is then the number run.
+    ``critic`` (a :class:`~torchrl_dalir.modules.ChunkCritic` or its checkpoint, trained on this policy's
+    branched outcomes) lets the reranking methods select with ``SelectionConfig(scorer="critic")``; without a
+    world model, ``dalir`` and ``random`` rerank with the critic alone (``dalir`` by its arg-max unless
+    ``selection`` says otherwise).
     A method that repeats another's row is not run again, so has no videos of its own: ``argmax`` when
     the checkpoint's rule is the arg-max, and, with ``common_noise`` and no ``search``, a DALI-R whose
     rule keeps the clean candidate at every decision (:attr:`SelectionConfig.keeps_clean`, e.g. a
@@ -139,17 +145,26 @@ def evaluate_checkpoints(
     check_evaluation_settings(episodes, seed, config.num_candidates, config.dropout, video=video)
     if video and video_dir is None:
         raise ValueError(f"video={video} needs video_dir=<folder> for the files")
-    methods = methods if methods is not None else ["base"] + (["dalir"] if world_model_path is not None else [])
+    reranks = world_model_path is not None or critic is not None
+    methods = methods if methods is not None else ["base"] + (["dalir"] if reranks else [])
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown methods {sorted(unknown)}; choose among {sorted(METHODS)}")
     if world_model_path is None and set(methods) & set(RERANKING):
-        raise ValueError(
-            f"methods {sorted(set(methods) & set(RERANKING))} rerank candidates: they need a world_model_path"
-        )
+        if critic is None:
+            raise ValueError(
+                f"methods {sorted(set(methods) & set(RERANKING))} rerank candidates: they need a world_model_path "
+                "(or a critic)"
+            )
+        if "argmax" in methods:
+            raise ValueError("method argmax is the paper's scorer on imagined latents: it needs a world_model_path")
     policy = load_policy(policy_path, device)
+    if isinstance(critic, (str, Path)):
+        critic = load_chunk_critic(critic, device, policy=policy)
     if world_model_path is not None:  # fails now, not after the base policy's episodes
         stored = load_world_model(world_model_path, policy=policy).selection
+    else:
+        stored = SelectionConfig(scorer="critic")
     actors = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}
     rules = {
         "dalir": {"selection": selection} if selection is not None else {},
@@ -157,6 +172,8 @@ def evaluate_checkpoints(
         "random": {},
     }
     env_kwargs = {"num_points": policy.num_points, "history": policy.config.obs_steps, "device": device}
+    if config.decisions > 1:  # the actor counts an episode's decisions by TorchRL's StepCounter
+        env_kwargs["step_counter"] = True
     rows, by_rule = {}, {}  # DALI-R with the same rule on the same episodes gives the same row: run it once
     for method in methods:
         if method in ("dalir", "argmax"):
@@ -184,9 +201,11 @@ def evaluate_checkpoints(
         elif method == "dropout":
             actor, describe = receding_horizon(DropoutPolicy(policy, config.dropout, actor_seed)), None
         else:
-            chooser = actors[method].on_policy(
-                policy, world_model_path, device, config=config, seed=actor_seed, candidates=candidates, **rules[method]
-            )
+            settings = dict(config=config, seed=actor_seed, candidates=candidates, critic=critic, **rules[method])
+            if world_model_path is not None:
+                chooser = actors[method].on_policy(policy, world_model_path, device, **settings)
+            else:
+                chooser = actors[method](policy, **settings)
             actor = receding_horizon(chooser)  # every step carries its decision's scores and choice
             describe = partial(decision_summary, action_steps=policy.config.action_steps)
         name = METHODS[method]

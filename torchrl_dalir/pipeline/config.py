@@ -71,7 +71,9 @@ class PipelineConfig:
         several alternatives needs it (30): the best of nine clears the bar by luck (warned).
     calibration_grid: the settings compared with the base policy (``GRIDS``): ``argmax``, the
         default, the ensemble arg-max alone (one comparison named in advance, so its p-value
-        holds as it is); ``all``, nine settings of four rules; ``margin``, the margin rule's.
+        holds as it is); ``all``, nine settings of four rules; ``margin``, the margin rule's;
+        ``critic``, the arg-max of the chunk critic that the branched stage trains (needs
+        ``branched_episodes >= 2``; the evaluation's DALI-R methods then carry that critic).
     calibration_design: ``fixed``, every setting on ``calibration_episodes`` episodes (then the
         confirmation above), or ``failures``, sized by the base policy's failures: the settings are
         screened on ``calibration_failures`` episodes it failed and as many it solved, and the most
@@ -80,6 +82,9 @@ class PipelineConfig:
         and ``calibration_confirm_episodes`` then only say whether to calibrate at all).
     num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability (the
         defaults of :class:`~torchrl_dalir.reranking.RerankingConfig`; :meth:`reranking` gives the record).
+    rerank_decisions: DALI-R reranks only each episode's first ``n`` decisions in calibration and
+        evaluation, the base policy acting alone afterwards (0, the default: every decision;
+        ``RerankingConfig.decisions``).
     redo: stages to run again from scratch even if their artifact exists
         (``redo=[world_model]``); later stages are redone too, and each previous run's
         directory is kept aside.
@@ -116,6 +121,7 @@ class PipelineConfig:
     calibration_failures: int = FAILURES
     num_candidates: int = RerankingConfig.num_candidates
     dropout: float = RerankingConfig.dropout
+    rerank_decisions: int = RerankingConfig.decisions
     redo: list[str] = field(default_factory=list)
     until: str = "evaluation"
     wandb: str = "off"  # off | offline | online (true/false: offline/off)
@@ -142,6 +148,11 @@ class PipelineConfig:
             )
         check_at_least("branched_candidates", self.branched_candidates, 2)
         check_at_least("branched_decisions", self.branched_decisions, 0)
+        check_at_least("rerank_decisions", self.rerank_decisions, 0)
+        if self.calibration_grid == "critic" and self.calibration_episodes and self.branched_episodes < 2:
+            raise ValueError(
+                "calibration_grid=critic calibrates the branched stage's chunk critic: set branched_episodes >= 2"
+            )
         check_eval_seed(self.calibration_seed, "calibration_seed")
         for name in (
             "calibration_episodes",
@@ -232,10 +243,17 @@ class PipelineConfig:
     def reranking(self) -> RerankingConfig:
         """DALI-R's settings in the job's calibration and evaluation: its ``num_candidates`` and
         ``dropout``, the evaluations' common noise, the selection rule the checkpoint stores."""
-        return evaluation_reranking(num_candidates=self.num_candidates, dropout=self.dropout)
+        return evaluation_reranking(
+            num_candidates=self.num_candidates, dropout=self.dropout, decisions=self.rerank_decisions
+        )
 
     def branched_dir(self) -> Path:
         return Path(self.out) / "data" / self.task / f"branched_{self.policy}_seed{self.seed}"
+
+    def critic(self) -> Path | None:
+        """The branched stage's chunk critic, if it trained one."""
+        path = self.branched_dir() / "critic.pt"
+        return path if self.branched_episodes >= 2 and path.exists() else None
 
     def exploration_name(self) -> str:
         return f"explore_{self.policy}_seed{self.seed}"

@@ -34,6 +34,7 @@ def evaluate_and_report(cfg: PipelineConfig, policy_path: Path, world_model_path
         reranking=cfg.reranking(),
         actor_seed=cfg.seed,
         methods=cfg.eval_methods,
+        critic=cfg.critic(),
     )
     policy = load_policy(policy_path, task=cfg.task)
 

@@ -325,6 +325,7 @@ def calibrate_and_record(cfg: PipelineConfig, policy_path: Path, world_model_pat
             device=cfg.device,
             reranking=cfg.reranking(),
             actor_seed=cfg.seed,
+            critic=cfg.critic(),
         )
         if cfg.calibration_design == "failures":
             record = calibrate_on_failures(policy_path, world_model_path, failures=cfg.calibration_failures, **common)
