@@ -22,10 +22,9 @@ The rule that decides whether a screen passes is written down before it runs
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from torchrl_dalir import RerankingActor, receding_horizon
@@ -36,10 +35,8 @@ from torchrl_dalir.evaluation.calibration import TEST_SEED
 from torchrl_dalir.evaluation.compare import decision_summary, paired_sign_test, pool_decision_summaries
 from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.reranking import RerankingConfig
-from torchrl_dalir.training.ranking import RankingTrainingConfig, cross_validated_auc, train_ranking_scorer
+from torchrl_dalir.training.ranking import CRITIC_VARIANTS, RankingTrainingConfig, fit_critic
 from torchrl_dalir.utils import atomic_write, git_commit, weights_digest
-
-VARIANTS = {"outcome": {"ranking": False}, "ranking": {"ranking": True}}
 
 
 @dataclass
@@ -66,21 +63,11 @@ class Config:
                 f"no branched outcomes at {self.branched!r}: pass branched=<collect_branched folder>"
             )
         for variant in self.variants:
-            check_choice("variants entry", variant, VARIANTS)
+            check_choice("variants entry", variant, CRITIC_VARIANTS)
         check_at_least("episodes", self.episodes, 1)
         check_at_least("decisions", self.decisions, 1)
         if self.seed == TEST_SEED and not self.test:
             raise ValueError(f"seed={TEST_SEED} holds the test episodes: screen on seed=1; test=true once it passed")
-
-
-def choose_critic(outcomes: BranchedOutcomes, policy, cfg: Config) -> tuple[str, dict]:
-    """The variant with the highest out-of-fold within-decision AUC (the first listed on a tie), and every AUC."""
-    aucs = {
-        variant: cross_validated_auc(outcomes, policy, replace(cfg.training, **VARIANTS[variant]), folds=cfg.folds)
-        for variant in cfg.variants
-    }
-    best = max(cfg.variants, key=lambda v: (np.nan_to_num(aucs[v]["auc"], nan=-1.0), -cfg.variants.index(v)))
-    return best, aucs
 
 
 def main(argv: list[str]) -> dict:
@@ -93,11 +80,9 @@ def main(argv: list[str]) -> dict:
     out.mkdir(parents=True, exist_ok=True)
 
     start = time.perf_counter()
-    variant, aucs = choose_critic(outcomes, policy, cfg)
-    training = replace(cfg.training, **VARIANTS[variant])
-    critic, metrics = train_ranking_scorer(outcomes, policy, training, held_out=torch.zeros(len(outcomes), dtype=bool))
-    metrics.pop("held_out_logits")
-    save_chunk_critic(out / "critic.pt", critic, policy, {**metrics, "variant": variant, "out_of_fold": aucs})
+    critic, metrics = fit_critic(outcomes, policy, cfg.training, tuple(cfg.variants), cfg.folds)
+    save_chunk_critic(out / "critic.pt", critic, policy, metrics)
+    variant, aucs = metrics["variant"], metrics["out_of_fold"]
     print(
         f"[critic] {outcomes}: out-of-fold AUC { ({v: round(a['auc'], 3) for v, a in aucs.items()}) }; kept {variant}"
     )

@@ -37,7 +37,7 @@ from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.training import train_policy, train_world_model
 from torchrl_dalir.training.logging import log_results
 from torchrl_dalir.training.policy import exploration_actor, policy_actor
-from torchrl_dalir.training.ranking import RankingTrainingConfig, train_ranking_scorer
+from torchrl_dalir.training.ranking import RankingTrainingConfig, fit_critic
 from torchrl_dalir.utils import atomic_write
 
 
@@ -265,10 +265,10 @@ def trained_as_asked(name: str, config, done) -> callable:
 
 
 def branch_and_rank(cfg: PipelineConfig, policy_path: Path) -> None:
-    """The branched stage: collects (or resumes) the branched outcomes, then writes ``ranking.json`` beside
-    them, the held-out within-decision AUC of a chunk critic trained on them, and the critic (``critic.pt``, for
-    ``RerankingActor(..., critic=load_chunk_critic(path), selection=SelectionConfig(scorer="critic"))``), with two
-    episodes or more."""
+    """The branched stage: collects (or resumes) the branched outcomes, then, with two episodes or more, fits a
+    chunk critic on them (:func:`~torchrl_dalir.training.ranking.fit_critic`: the loss with the higher out-of-fold
+    within-decision AUC, trained on every decision) and writes its metrics (``ranking.json``) and the critic
+    (``critic.pt``: ``calibration_grid=critic``, or ``RerankingActor(policy, critic=load_chunk_critic(path))``)."""
     policy = load_policy(policy_path, cfg.device)
     reranking = cfg.reranking().updated(num_candidates=cfg.branched_candidates)
     seed = BRANCHED_SEED_BASE + 1000 * cfg.seed
@@ -284,14 +284,13 @@ def branch_and_rank(cfg: PipelineConfig, policy_path: Path) -> None:
         device=cfg.device,
     )
     if cfg.branched_episodes >= 2:
-        critic, metrics = train_ranking_scorer(
-            outcomes, policy, RankingTrainingConfig(seed=cfg.seed), device=cfg.device
-        )
+        critic, metrics = fit_critic(outcomes, policy, RankingTrainingConfig(seed=cfg.seed), device=cfg.device)
         atomic_write(cfg.branched_dir() / "ranking.json", json.dumps(metrics, indent=1))
         save_chunk_critic(cfg.branched_dir() / "critic.pt", critic, policy, metrics)  # last: it marks the stage done
+        chosen = metrics["out_of_fold"][metrics["variant"]]
         print(
-            f"[branched] {outcomes}: held-out within-decision AUC {metrics['held_out_auc']:.3f} "
-            f"on {metrics['held_out_split_decisions']} split decisions"
+            f"[branched] {outcomes}: critic {metrics['variant']}, out-of-fold within-decision AUC "
+            f"{chosen['auc']:.3f} on {chosen['split_decisions']} split decisions"
         )
 
 

@@ -15,8 +15,9 @@ decisions taken from whole episodes the scorer never saw.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 from torch import nn
@@ -196,6 +197,39 @@ def cross_validated_auc(
         "split_decisions": int(split.sum()),
         "auc": within_decision_auc(logits[scored].tolist(), success[scored].tolist()),
     }
+
+
+# The chunk critic's two losses on branched outcomes: the terminal-label loss alone, or the listwise loss beside it.
+CRITIC_VARIANTS = {"outcome": {"ranking": False}, "ranking": {"ranking": True}}
+
+
+def fit_critic(
+    outcomes: BranchedOutcomes,
+    policy,
+    cfg: RankingTrainingConfig | None = None,
+    variants: tuple[str, ...] = tuple(CRITIC_VARIANTS),
+    folds: int = 10,
+    device="cpu",
+) -> tuple[ChunkCritic, dict]:
+    """A chunk critic for reranking: the variant of ``variants`` (:data:`CRITIC_VARIANTS`) with the higher
+    out-of-fold within-decision AUC (``folds`` groups of episodes; the first listed on a tie or where no decision
+    splits), then trained on every decision. Returns it and its metrics (``variant``, every variant's
+    ``out_of_fold`` AUC, the losses and the training AUC)."""
+    cfg = cfg if cfg is not None else RankingTrainingConfig()
+    for variant in variants:
+        check_choice("critic variant", variant, CRITIC_VARIANTS)
+    aucs = {
+        v: cross_validated_auc(outcomes, policy, replace(cfg, **CRITIC_VARIANTS[v]), folds=folds, device=device)
+        for v in variants
+    }
+    best = max(variants, key=lambda v: (np.nan_to_num(aucs[v]["auc"], nan=-1.0), -variants.index(v)))
+    everything = torch.zeros(len(outcomes), dtype=torch.bool)
+    critic, metrics = train_ranking_scorer(
+        outcomes, policy, replace(cfg, **CRITIC_VARIANTS[best]), held_out=everything, device=device
+    )
+    for unmeasured in ("held_out_logits", "held_out_auc", "held_out_decisions", "held_out_split_decisions"):
+        metrics.pop(unmeasured)
+    return critic, {"variant": best, "out_of_fold": aucs, **metrics}
 
 
 NEGATIVES = ("noise", "policy")
