@@ -14,7 +14,12 @@ from torchrl_dalir.data.branched import BranchedOutcomes, collect_branched
 from torchrl_dalir.modules import PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.objectives.within_state_ranking import WithinStateRankingLoss
 from torchrl_dalir.reranking import RerankingConfig
-from torchrl_dalir.training.ranking import RankingTrainingConfig, cross_validated_auc, train_ranking_scorer
+from torchrl_dalir.training.ranking import (
+    RankingTrainingConfig,
+    cross_validated_auc,
+    fit_critic,
+    train_ranking_scorer,
+)
 
 PAPER_SCRIPTS = Path(__file__).resolve().parents[1] / "examples" / "paper"
 
@@ -112,6 +117,12 @@ def test_ranking_scorer_trains_and_reports_held_out_auc():
     assert metrics["held_out_auc"] > 0.8
     cv = cross_validated_auc(rows, policy, RankingTrainingConfig(steps=300, hidden=32, seed=0), folds=4)
     assert (cv["folds"], cv["split_decisions"]) == (4, 80) and cv["auc"] > 0.8  # every decision scored out of fold
+    critic, fitted = fit_critic(rows, policy, RankingTrainingConfig(steps=300, hidden=32, seed=0), folds=4)
+    assert fitted["out_of_fold"]["ranking"] == cv  # the same folds and seeds
+    aucs = {v: fitted["out_of_fold"][v]["auc"] for v in ("outcome", "ranking")}
+    assert fitted["variant"] == max(aucs, key=aucs.get) and fitted["train_decisions"] == 80  # trained on all
+    with pytest.raises(ValueError, match="critic variant"):
+        fit_critic(rows, policy, variants=("listwise",))
 
 
 def test_script_collects_trains_both_variants_and_reruns_from_the_stored_data(trained_policy, tmp_path):
