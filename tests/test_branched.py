@@ -117,6 +117,8 @@ def test_ranking_scorer_trains_and_reports_held_out_auc():
     assert metrics["held_out_auc"] > 0.8
     cv = cross_validated_auc(rows, policy, RankingTrainingConfig(steps=300, hidden=32, seed=0), folds=4)
     assert (cv["folds"], cv["split_decisions"]) == (4, 80) and cv["auc"] > 0.8  # every decision scored out of fold
+    assert cv["oracle_success"] == 1.0 and cv["clean_success"] == success[:, 0].float().mean().item()
+    assert cv["pick_success"] > cv["clean_success"] + 0.2  # the arg-max picks winners the clean candidate misses
     critic, fitted = fit_critic(rows, policy, RankingTrainingConfig(steps=300, hidden=32, seed=0), folds=4)
     assert fitted["out_of_fold"]["ranking"] == cv  # the same folds and seeds
     aucs = {v: fitted["out_of_fold"][v]["auc"] for v in ("outcome", "ranking")}

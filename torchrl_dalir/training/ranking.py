@@ -180,7 +180,9 @@ def cross_validated_auc(
     """The out-of-fold within-decision AUC: the episodes fall into ``folds`` groups (0: one per episode), and the
     decisions of each group are scored by a scorer trained on the others' (:func:`train_ranking_scorer`, with
     ``kwargs``). Every decision that splits is then judged by a scorer that never saw its episode, which uses all
-    of them where a single held-out share leaves few. Groups without a split decision are not trained on."""
+    of them where a single held-out share leaves few. Groups without a split decision are not trained on.
+    Also the branches' success rate when each decision executes the clean candidate, the scorer's out-of-fold
+    arg-max, or a winner where one exists: an offline estimate, on data seeds, of what the arg-max would gain."""
     rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
     success = rows[SUCCESS]
     split = split_decisions(success)
@@ -192,10 +194,17 @@ def cross_validated_auc(
             _, metrics = train_ranking_scorer(rows, policy, cfg, held_out=fold, **kwargs)
             logits[fold] = torch.tensor(metrics["held_out_logits"])
     scored = split & ~logits.isnan().any(-1)
+    picked = success[:, 0].clone()  # where the candidates do not split, any pick does as the clean one
+    picked[scored] = success[scored].gather(-1, logits[scored].argmax(-1, keepdim=True)).squeeze(-1)
     return {
         "folds": folds or len(seeds),
         "split_decisions": int(split.sum()),
         "auc": within_decision_auc(logits[scored].tolist(), success[scored].tolist()),
+        # the branches' success rate under three choices: the clean candidate, the scorer's arg-max (out of
+        # fold), and a winner wherever there is one (the oracle)
+        "clean_success": success[:, 0].float().mean().item(),
+        "pick_success": picked.float().mean().item(),
+        "oracle_success": success.any(-1).float().mean().item(),
     }
 
 
