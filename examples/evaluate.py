@@ -6,6 +6,8 @@
     python examples/evaluate.py policy_checkpoint=... methods=[base,dropout]   # the base policy on point-dropout views
     # another rule:
     python examples/evaluate.py policy_checkpoint=... world_model=... methods=[dalir] selection.rule=argmax
+    # a chunk critic trained on branched outcomes, no world model, reranking each episode's first decision only:
+    python examples/evaluate.py policy_checkpoint=... critic=.../critic.pt num_candidates=8 decisions=1
     # GIFs of the first 2 episodes of each method:
     python examples/evaluate.py policy_checkpoint=... world_model=... video=2
 
@@ -34,11 +36,13 @@ from torchrl_dalir.utils import atomic_write, writable_dir
 class Config:
     policy_checkpoint: str = "outputs/pipeline/policies/disassemble/fm_seed0/checkpoint.pt"
     world_model: str | None = None  # add DALI-R with this world model (trained on top of ``policy_checkpoint``)
+    critic: str | None = None  # a chunk critic (critic.pt) to select with: alone, or with selection.scorer=critic
     episodes: int = 50
     seed: int = 0  # the evaluation seed: episodes never overlap data-generation episodes
     device: str = "cpu"
     num_candidates: int = RerankingConfig.num_candidates
     dropout: float = RerankingConfig.dropout
+    decisions: int = RerankingConfig.decisions  # rerank only each episode's first <decisions> decisions (0: all)
     actor_seed: int = 0
     # among base, dalir, argmax, random (DALI-R's candidates chosen at random), dropout (one point-dropout candidate)
     methods: list[str] | None = None
@@ -67,7 +71,9 @@ def main(argv: list[str]) -> None:
             dropout=cfg.dropout,
             selection=cfg.selection,
             common_noise=cfg.common_noise,
+            decisions=cfg.decisions,
         ),
+        critic=cfg.critic,
         actor_seed=cfg.actor_seed,
         methods=cfg.methods,
         video=cfg.video,

@@ -1,6 +1,7 @@
 """Reranking with a chunk critic alone (no world model) and at an episode's first decisions only."""
 
 import dataclasses
+import shutil
 
 import pytest
 import torch
@@ -48,7 +49,7 @@ def test_a_critic_alone_reranks_as_it_does_beside_a_world_model_and_bad_combinat
     assert torch.equal(a[CANDIDATE_SCORES], b[CANDIDATE_SCORES]) and torch.equal(
         a[CHOSEN_CANDIDATE], b[CHOSEN_CANDIDATE]
     )
-    with pytest.raises(ValueError, match="needs a scorer"):
+    with pytest.raises(ValueError, match="needs the latent encoder, world model and scorer"):
         RerankingActor(policy)
     with pytest.raises(ValueError, match="together, or none"):
         RerankingActor(policy, parts[0], parts[1], critic=critic)
@@ -88,8 +89,27 @@ def test_only_the_first_decisions_are_reranked_and_the_rest_is_the_base_policy_o
     kept = _rollout(RerankingActor(policy, critic=critic, config=keep, seed=4), step_counter)
     base = _rollout(policy, step_counter)
     assert torch.equal(kept[keys.ACTION], base[keys.ACTION])
-    if first == 1 and (decisions[CHOSEN_CANDIDATE][0] != 0).item():  # a switch at decision 0 changes the episode
-        assert not torch.equal(rollout[keys.ACTION][:8], base[keys.ACTION][:8])
+    assert decisions[CHOSEN_CANDIDATE][0] != 0  # this critic switches at the first decision ...
+    assert not torch.equal(rollout[keys.ACTION][:8], base[keys.ACTION][:8])  # ... which changes the episode
+
+
+def test_a_batch_reranked_in_part_replays_the_base_policy_batch_call_when_it_keeps_the_clean_candidates():
+    policy = untrained_reach_policy()
+    keep = SelectionConfig("margin", "critic", margin=1.0)
+    config = RerankingConfig(num_candidates=4, common_noise=True, decisions=1, selection=keep)
+    dalir = RerankingActor(policy, critic=_critic(policy), config=config, seed=2)
+    observation = _observation().set(keys.STEP_COUNT, torch.tensor([[0], [16], [0]]))  # rows 0 and 2 rerank
+    torch.manual_seed(5)
+    base = policy.sample(policy.encode(observation["point_cloud"], observation["agent_pos"]))
+    torch.manual_seed(5)
+    decision = dalir(observation)
+    assert torch.equal(decision[keys.ACTION_CHUNK], base)  # one call of the base policy for the whole batch
+    scores = decision[CANDIDATE_SCORES]
+    assert scores[[0, 2]].isfinite().all() and scores[1].isnan().all()
+    after_actor = torch.randn(1)
+    torch.manual_seed(5)
+    policy.sample(policy.encode(observation["point_cloud"], observation["agent_pos"]))
+    assert torch.equal(after_actor, torch.randn(1))  # the global stream moved as by one base-policy call
 
 
 def test_counting_decisions_past_the_first_needs_a_step_counter():
@@ -111,7 +131,7 @@ def _saved_critic(policy, path):
 
 
 def test_evaluation_and_calibration_take_a_critic_and_rerank_the_first_decisions_only(trained_world_model, tmp_path):
-    from torchrl_dalir.checkpoints import load_policy
+    from torchrl_dalir.checkpoints import load_policy, store_selection
     from torchrl_dalir.evaluation.calibration import GRIDS, calibrate
     from torchrl_dalir.evaluation.compare import evaluate_checkpoints
     from torchrl_dalir.pipeline.config import PipelineConfig
@@ -132,6 +152,11 @@ def test_evaluation_and_calibration_take_a_critic_and_rerank_the_first_decisions
         calibrate(policy_path, world_model, grid=GRIDS["critic"], write=False, **common)
     record = calibrate(policy_path, world_model, grid=GRIDS["critic"], write=False, critic=critic, **common)
     assert [e["name"] for e in record["entries"]] == ["margin(ensemble, k=1, margin=1)", "argmax(critic)"]
+    calibrated = tmp_path / "world_model.pt"  # a world model whose stored rule is the critic's
+    shutil.copy(world_model, calibrated)
+    store_selection(calibrated, SelectionConfig("argmax", "critic"), {"chosen": "argmax(critic)"})
+    with pytest.raises(ValueError, match="stores the rule argmax\\(critic\\)"):
+        evaluate_checkpoints(policy_path, calibrated, methods=["base", "dalir"], **common)
     with pytest.raises(ValueError, match="branched_episodes >= 2"):
         PipelineConfig(task="reach", calibration_grid="critic")
     assert PipelineConfig(task="reach", rerank_decisions=1).reranking().decisions == 1

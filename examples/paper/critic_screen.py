@@ -11,9 +11,9 @@ point-dropout candidates at each episode's first decisions, on the same episodes
 2. That variant is trained on every branched decision and saved as ``<out>/critic.pt``.
 3. The base policy and :class:`~torchrl_dalir.reranking.RerankingActor` with the critic alone (no world
    model; the candidates the branched data were made with; ``decisions`` first decisions reranked, then the
-   base policy; common noise, so a kept clean candidate replays the base policy's episode) run the same
-   ``episodes`` episodes of evaluation seed ``seed``. The paired sign test and every episode's outcome go to
-   ``json``.
+   base policy; common noise) run the same ``episodes`` episodes of evaluation seed ``seed``
+   (:func:`~torchrl_dalir.evaluation.compare.evaluate_checkpoints`). The paired sign test and every
+   episode's outcome go to ``json``.
 
 The rule that decides whether a screen passes is written down before it runs
 (``docs/results/critic_screen_prereg.json``); test episodes (``seed=0``) need ``test=true``.
@@ -27,13 +27,17 @@ from pathlib import Path
 
 import torch
 
-from torchrl_dalir import RerankingActor, receding_horizon
 from torchrl_dalir.checkpoints import load_policy, save_chunk_critic
 from torchrl_dalir.config import check_at_least, check_choice, parse_config
 from torchrl_dalir.data.branched import BranchedOutcomes
 from torchrl_dalir.evaluation.calibration import TEST_SEED
-from torchrl_dalir.evaluation.compare import decision_summary, paired_sign_test, pool_decision_summaries
-from torchrl_dalir.evaluation.success_rate import evaluate
+from torchrl_dalir.evaluation.compare import (
+    BASE,
+    DALIR,
+    evaluate_checkpoints,
+    paired_sign_test,
+    pool_decision_summaries,
+)
 from torchrl_dalir.reranking import RerankingConfig
 from torchrl_dalir.training.ranking import CRITIC_VARIANTS, RankingTrainingConfig, fit_critic
 from torchrl_dalir.utils import atomic_write, git_commit, weights_digest
@@ -92,28 +96,17 @@ def main(argv: list[str]) -> dict:
     reranking = RerankingConfig.with_generator(
         meta.candidates, meta.setting, num_candidates=meta.num_candidates, common_noise=True, decisions=cfg.decisions
     )
-    actors = {
-        "base policy": (receding_horizon(policy), None),
-        "critic": (
-            receding_horizon(RerankingActor(policy, critic=critic, config=reranking, seed=cfg.actor_seed)),
-            lambda rollout: decision_summary(rollout, policy.action_steps),
-        ),
-    }
-    env_kwargs = {"num_points": policy.num_points, "history": policy.obs_steps}
-    rows = {}
-    for name, (actor, describe) in actors.items():
-        torch.manual_seed(cfg.actor_seed)  # common noise: both draw the clean chunk from this stream
-        begin = time.perf_counter()
-        result = evaluate(
-            actor, policy.task, cfg.episodes, cfg.seed, progress=cfg.progress, describe=describe, **env_kwargs
-        )
-        rows[name] = {
-            "success_rate": result.success_rate,
-            "episodes": len(result.episodes),
-            "seconds": round(time.perf_counter() - begin, 1),
-            "records": result.to_dict()["episodes"],
-        }
-        print(f"[screen] {policy.task} {name}: {result.success_rate:.1%} over {len(result.episodes)} episodes")
+    rows = evaluate_checkpoints(
+        cfg.policy,
+        critic=critic,
+        methods=["base", "dalir"],
+        episodes=cfg.episodes,
+        seed=cfg.seed,
+        reranking=reranking,
+        actor_seed=cfg.actor_seed,
+        progress=cfg.progress,
+    )
+    rows = {"base policy": rows[BASE], "critic": rows[DALIR]}
     base, chosen = ([r["success"] for r in rows[m]["records"]] for m in ("base policy", "critic"))
     paired = paired_sign_test(base, chosen)
     choices = pool_decision_summaries([r["details"] for r in rows["critic"]["records"]])

@@ -17,7 +17,7 @@ from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.modules.chunk_critic import ChunkCritic
 from torchrl_dalir.modules.receding_horizon import receding_horizon
 from torchrl_dalir.reranking import RandomCandidateActor, RerankingActor, RerankingConfig, SearchConfig
-from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE
+from torchrl_dalir.reranking.actor import CANDIDATE_SCORES, CHOSEN_CANDIDATE, check_critic
 from torchrl_dalir.reranking.candidates import DropoutPolicy
 from torchrl_dalir.reranking.selection import SelectionConfig
 from torchrl_dalir.seeds import check_eval_seed
@@ -94,7 +94,7 @@ def evaluate_checkpoints(
     stop_when: Callable[[list], bool] | None = None,
     critic: ChunkCritic | str | Path | None = None,
 ) -> dict[str, dict]:
-    """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` is given,
+    """Evaluates a policy checkpoint, and DALI-R on top of it when ``world_model_path`` or ``critic`` is given,
     with 8-of-16 receding-horizon execution on the same ``episodes`` evaluation episodes.
 
     ``methods`` picks among ``"base"``, ``"dalir"`` (DALI-R choosing by ``selection``, by default
@@ -161,8 +161,16 @@ def evaluate_checkpoints(
     policy = load_policy(policy_path, device)
     if isinstance(critic, (str, Path)):
         critic = load_chunk_critic(critic, device, policy=policy)
+    elif critic is not None:
+        check_critic(policy, critic)
+        critic = critic.to(device)
     if world_model_path is not None:  # fails now, not after the base policy's episodes
         stored = load_world_model(world_model_path, policy=policy).selection
+        if "dalir" in methods and selection is None and stored.scorer == "critic" and critic is None:
+            raise ValueError(
+                f"{world_model_path} stores the rule {stored.name} (calibration_grid=critic): pass critic=<critic.pt> "
+                "(the main job's <out>/data/<task>/branched_<policy>_seed<seed>/critic.pt), or selection="
+            )
     else:
         stored = SelectionConfig(scorer="critic")
     actors = {"dalir": RerankingActor, "argmax": RerankingActor, "random": RandomCandidateActor}

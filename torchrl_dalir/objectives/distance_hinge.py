@@ -25,7 +25,8 @@ class DistanceHingeLoss(KeyedLossModule):
     The binary cross-entropy fits ``Q(s, a)`` to the trajectory's terminal label; the hinge asks
     ``Q(s, a') <= Q(s, a) - scale * d(a, a')`` (logits), with ``d`` the root-mean-square distance in the
     critic's normalised action units. The hinge moves the gap between the two values and the cross-entropy
-    pins their level (with ``Q(s, a)`` held fixed in the hinge, both fall together without end). Mixed data
+    pins their level. Gradients flow through both sides of the hinge: were ``Q(s, a)`` detached there, the hinge
+    would push every value of a state down, the executed chunk's with it, without end. Mixed data
     record one chunk per state; the hinge is the only signal here that compares chunks of the same state,
     which a critic trained on labels alone is never asked to do.
 

@@ -41,8 +41,18 @@ def check_imagination(policy: ChunkPolicy, encoder: LatentEncoder, world_model: 
         raise ValueError("the world model and the latent encoder disagree on the latent size")
 
 
+def check_critic(policy: ChunkPolicy, critic: ChunkCritic) -> None:
+    """Refuses a chunk critic of other executed actions than ``policy``'s."""
+    if (critic.action_dim, critic.action_steps) != (policy.action_dim, policy.action_steps):
+        raise ValueError(
+            f"the chunk critic scores {critic.action_steps} executed {critic.action_dim}-D actions; the policy "
+            f"executes {policy.action_steps} {policy.action_dim}-D actions (train the critic on this policy's outcomes)"
+        )
+
+
 class RerankingActor(TensorDictModuleBase):
-    """Samples candidate chunks from a frozen policy, imagines and scores each, executes one.
+    """Samples candidate chunks from a frozen policy, imagines and scores each (or scores each with a chunk
+    critic), executes one.
 
     At each decision: build ``num_candidates`` perturbed policy inputs (candidate 0 is always
     the clean observation), sample all chunks in one batched policy call, optionally search the
@@ -148,7 +158,7 @@ class RerankingActor(TensorDictModuleBase):
         if all(part is None for part in imagination):
             if critic is None:
                 raise ValueError(
-                    "RerankingActor needs a scorer: the latent encoder, world model and scorer "
+                    f"{type(self).__name__} needs the latent encoder, world model and scorer "
                     "(RerankingActor.from_checkpoints), or a chunk critic (critic=load_chunk_critic(<critic.pt>))"
                 )
             if config.selection is None:  # the critic is the only scorer there is
@@ -174,6 +184,8 @@ class RerankingActor(TensorDictModuleBase):
                 f"selection {self.selection.name} needs a chunk critic: pass critic=load_chunk_critic(<critic.pt>) "
                 "(the main job's branched stage trains one)"
             )
+        if critic is not None:
+            check_critic(policy, critic)
         self.critic = critic.eval().requires_grad_(False) if critic is not None else None
         self.search = config.search
         self.search.check(config.num_candidates, policy.action_dim)
@@ -258,11 +270,12 @@ class RerankingActor(TensorDictModuleBase):
             members = members.unsqueeze(1)
         else:
             members = self._probabilities(self.imagine(cloud, agent_pos, chunks))
+        scorer = "chunk critic" if self.selection.scorer == "critic" else "latent encoder, world model or scorer"
         check_finite_output(
             members,
             "DALI-R's candidate_scores",
-            "the latent encoder, world model or scorer gave NaN (damaged "
-            "weights, or an observation far outside the training data): reload or retrain the world model",
+            f"the {scorer} gave NaN (damaged weights, or an observation far outside the training data): "
+            f"reload or retrain the {'critic' if self.selection.scorer == 'critic' else 'world model'}",
         )
         return members
 
@@ -284,10 +297,13 @@ class RerankingActor(TensorDictModuleBase):
         return self.member_scores(cloud, agent_pos, chunks).mean(1)
 
     @torch.no_grad()
-    def sample_candidates(self, cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
+    def sample_candidates(
+        self, cloud: torch.Tensor, agent_pos: torch.Tensor, clean: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Candidate chunks ``[B, K, H, A]``; candidate 0 is the policy's sample from the clean
-        observation, the others are perturbed-input samples, or what ``search`` found from them."""
-        chunks = self._policy_samples(cloud, agent_pos)
+        observation, the others are perturbed-input samples, or what ``search`` found from them. With common
+        noise, ``clean`` (``[B, H, A]``) is candidate 0 when the base policy's own call already drew it."""
+        chunks = self._policy_samples(cloud, agent_pos, clean)
         if self.search.method == "none":
             return chunks
         objective = self.objective(cloud, agent_pos)
@@ -297,17 +313,21 @@ class RerankingActor(TensorDictModuleBase):
 
     def search_normalizer(self):
         """The action space an action-space search works in: the policy's normalised actions (its
-        ``action_normalizer``), or, for a policy without one, the world model's (fitted on its data)."""
+        ``action_normalizer``), or, for a policy without one, the world model's (fitted on its data), or with no
+        world model the critic's."""
         normalizer = getattr(self.policy, "action_normalizer", None)
-        return normalizer if normalizer is not None else self.world_model.action_normalizer
+        if normalizer is not None:
+            return normalizer
+        return (self.world_model if self.world_model is not None else self.critic).action_normalizer
 
-    def _policy_samples(self, cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
+    def _policy_samples(self, cloud: torch.Tensor, agent_pos: torch.Tensor, clean: torch.Tensor | None = None):
         cond = self.candidates.conditions(self.policy, cloud, agent_pos, self.num_candidates, self.generator)
         if not self.common_noise:
             return self.policy.sample(cond, self.generator)
         shape = (cond.shape[0], self.num_candidates, self.policy.horizon, self.policy.action_dim)
         noise = torch.randn(shape, generator=self.generator).to(cond.device)  # as without common noise
-        clean = self.policy.sample(self.policy.encode(cloud, agent_pos))  # the base policy's own call, bit for bit
+        if clean is None:
+            clean = self.policy.sample(self.policy.encode(cloud, agent_pos))  # the base policy's own call, bit for bit
         return torch.cat([clean.unsqueeze(1), self.policy.sample(cond[:, 1:], noise=noise[:, 1:])], dim=1)
 
     @torch.no_grad()
@@ -344,21 +364,26 @@ class RerankingActor(TensorDictModuleBase):
         if rerank.all():
             chosen, scores, best = self._rerank(cloud, agent_pos)
         else:  # the others act as the base policy: its own sample, no scores, candidate 0
-            chosen = self.policy.sample(
-                self.policy.encode(cloud, agent_pos), None if self.common_noise else self.generator
-            )
-            scores = chosen.new_full((len(chosen), self.num_candidates), float("nan"))
-            best = torch.zeros(len(chosen), dtype=torch.long, device=chosen.device)
+            keep, clean = ~rerank, None
+            chosen = cloud.new_empty((len(cloud), self.policy.horizon, self.policy.action_dim))
+            if self.common_noise:  # one call for every row, as the base policy samples; reranked rows keep theirs
+                clean = self.policy.sample(self.policy.encode(cloud, agent_pos))
+                chosen[keep] = clean[keep]
+            else:
+                chosen[keep] = self.policy.sample(self.policy.encode(cloud[keep], agent_pos[keep]), self.generator)
+            scores = cloud.new_full((len(cloud), self.num_candidates), float("nan"))
+            best = torch.zeros(len(cloud), dtype=torch.long, device=cloud.device)
             if rerank.any():
-                chosen[rerank], scores[rerank], best[rerank] = self._rerank(cloud[rerank], agent_pos[rerank])
+                clean = clean[rerank] if clean is not None else None
+                chosen[rerank], scores[rerank], best[rerank] = self._rerank(cloud[rerank], agent_pos[rerank], clean)
         chunk_key, scores_key, chosen_key = self.out_keys
         tensordict.set(chunk_key, chosen.reshape(*batch, *chosen.shape[1:]))
         tensordict.set(scores_key, scores.reshape(*batch, -1))
         return tensordict.set(chosen_key, best.reshape(batch))
 
-    def _rerank(self, cloud: torch.Tensor, agent_pos: torch.Tensor):
+    def _rerank(self, cloud: torch.Tensor, agent_pos: torch.Tensor, clean: torch.Tensor | None = None):
         """The chosen chunks ``[B, H, A]``, every candidate's score ``[B, K]`` and the chosen indices ``[B]``."""
-        chunks = self.sample_candidates(cloud, agent_pos)
+        chunks = self.sample_candidates(cloud, agent_pos, clean)
         members = self.member_scores(cloud, agent_pos, chunks)
         best = select(members, self.selection, self.generator, actions=chunks[..., self.executed, :])
         return chunks[torch.arange(len(best)), best], members.mean(1), best

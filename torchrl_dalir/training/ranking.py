@@ -91,6 +91,11 @@ def candidate_features(
     return world_model.imagine(latent, executed)
 
 
+def _rows(outcomes: BranchedOutcomes | TensorDict) -> TensorDict:
+    """The decisions of branched outcomes, or a table of them, in memory."""
+    return outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
+
+
 def _executed(rows: TensorDict, policy) -> torch.Tensor:
     """The executed actions ``[B, K, k, A]`` of branched decisions' candidate chunks."""
     return rows[keys.ACTION_CHUNK][:, :, executed_slice(policy.obs_steps, policy.action_steps)]
@@ -118,7 +123,7 @@ def train_ranking_scorer(
     Returns the scorer and its metrics: the losses at the start and end, the within-decision AUC on the
     training and the held-out decisions that split (with their counts), and the held-out logits."""
     torch.manual_seed(cfg.seed)
-    rows = (outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes).to(device)
+    rows = _rows(outcomes).to(device)
     executed = _executed(rows, policy)
     held_out = (_held_out(rows, cfg.held_out_fraction) if held_out is None else held_out).to(device)
     critic = None
@@ -183,7 +188,7 @@ def cross_validated_auc(
     of them where a single held-out share leaves few. Groups without a split decision are not trained on.
     Also the branches' success rate when each decision executes the clean candidate, the scorer's out-of-fold
     arg-max, or a winner where one exists: an offline estimate, on data seeds, of what the arg-max would gain."""
-    rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
+    rows = _rows(outcomes)
     success = rows[SUCCESS]
     split = split_decisions(success)
     seeds = rows[RESET_SEED].unique(sorted=True)
@@ -197,7 +202,7 @@ def cross_validated_auc(
     picked = success[:, 0].clone()  # where the candidates do not split, any pick does as the clean one
     picked[scored] = success[scored].gather(-1, logits[scored].argmax(-1, keepdim=True)).squeeze(-1)
     return {
-        "folds": folds or len(seeds),
+        "folds": min(folds, len(seeds)) if folds else len(seeds),
         "split_decisions": int(split.sum()),
         "auc": within_decision_auc(logits[scored].tolist(), success[scored].tolist()),
         # the branches' success rate under three choices: the clean candidate, the scorer's arg-max (out of
@@ -254,6 +259,7 @@ class MixedCriticConfig:
             candidates there, the chunks the reranker will rank).
         num_negatives: ``M``, perturbed chunks per state.
         noise_std: the ``noise`` negatives' standard deviation, in normalised action units ([-1, 1] range).
+        dropout: the ``policy`` negatives' point-dropout probability.
         scale, hinge_weight: the hinge's margin per unit of distance (logits) and its weight (0: labels only).
         decisions: at most this many recorded decisions (states at every ``action_steps``-th step), drawn at random.
         hidden, steps, batch_size, lr, weight_decay: the critic MLP and AdamW.
@@ -263,6 +269,7 @@ class MixedCriticConfig:
     negatives: str = "noise"
     num_negatives: int = 7
     noise_std: float = 0.1
+    dropout: float = RerankingConfig.dropout
     scale: float = 1.0
     hinge_weight: float = 1.0
     decisions: int = 4000
@@ -280,7 +287,9 @@ class MixedCriticConfig:
 
 
 @torch.no_grad()
-def recorded_decisions(dataset: TrajectoryDataset, policy, cfg: MixedCriticConfig, critic: ChunkCritic) -> TensorDict:
+def recorded_decisions(
+    dataset: TrajectoryDataset, policy, cfg: MixedCriticConfig, critic: ChunkCritic, device="cpu"
+) -> TensorDict:
     """The decisions of ``dataset`` that :class:`DistanceHingeLoss` reads: each state's condition, executed
     chunk, perturbed chunks and terminal label (at most ``cfg.decisions`` states, one every ``action_steps``)."""
     windows = TrajectoryWindows(dataset, policy.obs_steps, policy.horizon, policy.action_steps)
@@ -288,19 +297,19 @@ def recorded_decisions(dataset: TrajectoryDataset, policy, cfg: MixedCriticConfi
     at_decision = torch.nonzero(windows.steps % policy.action_steps == 0).squeeze(-1)
     chosen = at_decision[torch.randperm(len(at_decision), generator=generator)[: cfg.decisions]]
     executed_part = executed_slice(policy.obs_steps, policy.action_steps)
+    dropout = candidate_generator(RerankingConfig(num_candidates=cfg.num_negatives + 1, dropout=cfg.dropout))
     parts = []
     for index in chosen.split(256):
-        batch = windows[index]
+        batch = windows[index].to(device)
         cloud, agent_pos = batch[keys.POINT_CLOUD], batch[keys.AGENT_POS]
         executed = batch[keys.ACTION_CHUNK][:, executed_part]
         if cfg.negatives == "policy":
-            dropout = candidate_generator(RerankingConfig(num_candidates=cfg.num_negatives + 1))
             cond = dropout.conditions(policy, cloud, agent_pos, cfg.num_negatives + 1, generator)
             perturbed = policy.sample(cond[:, 1:], generator)[:, :, executed_part]
         else:
             normalize = critic.action_normalizer
             noise = torch.randn((len(index), cfg.num_negatives, *executed.shape[1:]), generator=generator)
-            perturbed = normalize.unnormalize(normalize(executed).unsqueeze(1) + cfg.noise_std * noise)
+            perturbed = normalize.unnormalize(normalize(executed).unsqueeze(1) + cfg.noise_std * noise.to(device))
         parts.append(
             TensorDict(
                 {
@@ -315,22 +324,25 @@ def recorded_decisions(dataset: TrajectoryDataset, policy, cfg: MixedCriticConfi
     return torch.cat(parts)
 
 
-def train_mixed_critic(dataset: TrajectoryDataset, policy, cfg: MixedCriticConfig) -> tuple[ChunkCritic, dict]:
+def train_mixed_critic(
+    dataset: TrajectoryDataset, policy, cfg: MixedCriticConfig, device="cpu"
+) -> tuple[ChunkCritic, dict]:
     """A chunk critic trained on ``dataset``'s recorded decisions with :class:`DistanceHingeLoss`: no branched
     outcome, no simulator. Returns it and the losses at the start and the end."""
     torch.manual_seed(cfg.seed)
     windows = TrajectoryWindows(dataset, policy.obs_steps, policy.horizon, policy.action_steps)
-    cond_dim = policy.encode(*(windows[[0]][k] for k in (keys.POINT_CLOUD, keys.AGENT_POS))).shape[-1]
-    critic = ChunkCritic(cond_dim, policy.action_dim, policy.action_steps, hidden=cfg.hidden)
-    critic.action_normalizer.fit(dataset.rows[keys.ACTION])
-    table = recorded_decisions(dataset, policy, cfg, critic)
+    first = windows[[0]].to(device)
+    cond_dim = policy.encode(first[keys.POINT_CLOUD], first[keys.AGENT_POS]).shape[-1]
+    critic = ChunkCritic(cond_dim, policy.action_dim, policy.action_steps, hidden=cfg.hidden).to(device)
+    critic.action_normalizer.fit(dataset.rows[keys.ACTION].to(device))
+    table = recorded_decisions(dataset, policy, cfg, critic, device)
     loss_module = DistanceHingeLoss(critic, cfg.scale, cfg.hinge_weight)
     optimizer = torch.optim.AdamW(critic.scorer.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     generator = torch.Generator().manual_seed(cfg.seed)
     with torch.no_grad():
         first = {k: float(v) for k, v in loss_module(table).items()}
     for _ in range(cfg.steps):
-        batch = table[torch.randint(len(table), (min(cfg.batch_size, len(table)),), generator=generator)]
+        batch = table[torch.randint(len(table), (min(cfg.batch_size, len(table)),), generator=generator).to(device)]
         loss = sum(loss_module(batch).values())
         optimizer.zero_grad()
         loss.backward()
@@ -346,7 +358,7 @@ def train_mixed_critic(dataset: TrajectoryDataset, policy, cfg: MixedCriticConfi
 def critic_auc(critic: ChunkCritic, outcomes: BranchedOutcomes, policy) -> dict:
     """The within-decision AUC of a trained ``critic`` on every branched decision that splits (none of which it
     was trained on, for a critic of the mixed data)."""
-    rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
+    rows = _rows(outcomes).to(next(critic.parameters()).device)
     logits = critic(policy.encode(rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]), _executed(rows, policy))
     return {
         "split_decisions": int(split_decisions(rows[SUCCESS]).sum()),
