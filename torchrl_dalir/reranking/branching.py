@@ -59,7 +59,7 @@ def decision_noise(policy, episode_seed: int, decision: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def _base_actions(policy, observations: list[dict], episode_seed: int, decision: int, device) -> np.ndarray:
+def base_actions(policy, observations: list[dict], episode_seed: int, decision: int, device) -> np.ndarray:
     """The executed actions of the base policy's chunk at ``decision``, after the episode's ``observations``."""
     cloud, agent_pos = observation_history(policy, observations, device)
     noise = decision_noise(policy, episode_seed, decision).to(device)
@@ -81,7 +81,7 @@ def continue_base(
     while True:
         if visit is not None:
             visit(decision, observations)
-        new, success, ended = execute_actions(env, _base_actions(policy, observations, episode_seed, decision, device))
+        new, success, ended = execute_actions(env, base_actions(policy, observations, episode_seed, decision, device))
         steps += len(new)
         if ended:
             return success, steps

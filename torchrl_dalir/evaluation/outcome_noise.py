@@ -1,0 +1,110 @@
+"""Is a candidate's branched outcome a property of its chunk, or of the noise that follows it?
+
+The branched outcomes (:mod:`~torchrl_dalir.data.branched`) and the candidates' ceiling
+(:mod:`~torchrl_dalir.evaluation.candidate_ceiling`) continue every candidate with the base policy
+under one draw of its sampling noise (common random numbers). An oracle that picks a winner of that
+draw knows the future noise; a scorer of the state and the chunk cannot. Here each stored candidate is
+executed again from the same saved state and continued under *another* draw of the base policy's noise:
+if the first draw's winners win again more often than its losers, the chunk carries signal a scorer can
+learn; if not, the first draw's winners were luck, and no scorer can reach that ceiling.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from tqdm.auto import tqdm
+
+from torchrl_dalir import keys
+from torchrl_dalir.data.branched import DECISION, RESET_SEED, SUCCESS, BranchedOutcomes
+from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+from torchrl_dalir.envs.tasks import get_task
+from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
+from torchrl_dalir.objectives.within_state_ranking import split_decisions
+from torchrl_dalir.reranking.branching import base_actions, branch, execute_actions, executed_actions
+
+# Draw d > 0 of the base policy's noise after a decision uses the noise stream of episode seed
+# reset_seed + d * NOISE_DRAW_STRIDE (draw 0 is the collection's own), far from any real reset seed.
+NOISE_DRAW_STRIDE = 2**40
+
+
+def noise_seed(reset_seed: int, draw: int) -> int:
+    """The seed of the base policy's noise stream in draw ``draw`` after a decision of episode ``reset_seed``."""
+    return reset_seed + draw * NOISE_DRAW_STRIDE
+
+
+def decision_state(env: PointCloudObservation, policy, reset_seed: int, decision: int, device) -> tuple:
+    """The simulator state and the observations at ``decision`` of the base episode reset with ``reset_seed``
+    (the base policy's own chunks before it, as in :func:`~torchrl_dalir.reranking.branching.base_episode`)."""
+    observation, _ = env.reset(seed=reset_seed)
+    observations = [observation]
+    for j in range(decision):
+        new, _, ended = execute_actions(env, base_actions(policy, observations, reset_seed, j, device))
+        if ended:
+            raise ValueError(f"the base episode of reset seed {reset_seed} ended before decision {decision}")
+        observations = observations + new
+    return env.get_state(), observations
+
+
+@torch.no_grad()
+def redraw_outcomes(
+    policy, outcomes: BranchedOutcomes, draw: int = 1, only_split: bool = True, progress: bool = True, device="cpu"
+) -> TensorDict:
+    """Every stored candidate of ``outcomes``' decisions (those that split, with ``only_split``) executed again
+    from its saved state and continued with the base policy under noise draw ``draw`` (0: the collection's
+    own, which reproduces the stored outcomes). Returns the decisions' rows with ``success`` ``[D, K]`` of the
+    new draw and ``first_success``, the stored one."""
+    rows = outcomes.rows.to_tensordict()
+    if only_split:
+        rows = rows[split_decisions(rows[SUCCESS])]
+    spec = get_task(outcomes.meta.task)
+    env = PointCloudObservation(
+        make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps, history=policy.obs_steps
+    )
+    successes = []
+    try:
+        for row in tqdm(rows, desc=f"redraw {spec.name}", disable=not progress):
+            reset_seed, decision = int(row[RESET_SEED]), int(row[DECISION])
+            state, observations = decision_state(env, policy, reset_seed, decision, device)
+            actions = executed_actions(policy, row[keys.ACTION_CHUNK])
+            seed = noise_seed(reset_seed, draw)
+            successes.append([branch(env, policy, state, observations, a, seed, decision, device)[0] for a in actions])
+    finally:
+        env.close()
+    out = rows.select(RESET_SEED, DECISION).clone()
+    out.set("first_success", rows[SUCCESS])
+    out.set(SUCCESS, torch.tensor(successes, dtype=torch.bool).reshape(rows[SUCCESS].shape))
+    return out
+
+
+def oracle_pick(success: torch.Tensor) -> torch.Tensor:
+    """The candidate the ceiling's oracle executes at each decision ``[D, K]``: the clean one if it won (or none
+    won), else the first winner."""
+    won = success.clone()
+    won[:, 0] |= ~success.any(-1)
+    return won.float().argmax(-1)
+
+
+def repeatability(first: torch.Tensor, second: torch.Tensor) -> dict:
+    """How far the first draw's outcomes ``[D, K]`` predict the second's: the chance to win again after a win and
+    after a loss, the within-decision AUC of the first outcome as a score of the second, and the second draw's
+    success rate of the clean candidate, of a random candidate, of the first draw's oracle pick, and of a winner
+    of the second draw wherever there is one."""
+    first, second = first.bool(), second.bool()
+    pick = second.gather(-1, oracle_pick(first).unsqueeze(-1)).squeeze(-1)
+    return {
+        "decisions": len(first),
+        "win_again": float(second[first].float().mean()) if first.any() else float("nan"),
+        "win_after_loss": float(second[~first].float().mean()) if (~first).any() else float("nan"),
+        "auc_of_first_draw": within_decision_auc(first.float().tolist(), second.tolist()),
+        "second_draw_split": int(split_decisions(second).sum()),
+        "clean": float(second[:, 0].float().mean()),
+        "random": float(second.float().mean()),
+        "first_draw_oracle_pick": float(pick.float().mean()),
+        "second_draw_oracle": float(second.any(-1).float().mean()),
+        "first_draw_oracle": float(first.any(-1).float().mean()),
+        "first_draw_clean": float(first[:, 0].float().mean()),
+    }
+
+
+__all__ = ["NOISE_DRAW_STRIDE", "decision_state", "noise_seed", "oracle_pick", "redraw_outcomes", "repeatability"]
