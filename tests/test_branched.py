@@ -322,3 +322,31 @@ def test_script_measures_imagined_inputs_the_paper_scorers_and_the_no_simulator_
         and critics["mixed_labels"]["loss_end"]["loss_hinge"] == 0
     )
     assert all(c["split_decisions"] == result["split_decisions"] for c in critics.values())
+
+
+def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(trained_policy, tmp_path):
+    from torchrl_dalir.checkpoints import load_policy
+    from torchrl_dalir.evaluation.outcome_noise import oracle_pick, redraw_outcomes, repeatability
+
+    _, checkpoint = trained_policy
+    policy = load_policy(checkpoint)
+    outcomes = collect_branched(
+        policy,
+        tmp_path / "branched",
+        RerankingConfig(num_candidates=3),
+        episodes=2,
+        stride=8,
+        seed=11,
+        progress=False,
+    )
+    again = redraw_outcomes(policy, outcomes, draw=0, only_split=False, progress=False)
+    assert torch.equal(again["success"], outcomes.rows["success"])  # the collection's own noise: the same outcomes
+    assert torch.equal(again["decision"], outcomes.rows["decision"])
+    first = torch.tensor([[0, 1, 1], [1, 0, 1], [0, 0, 0]]).bool()
+    second = torch.tensor([[0, 0, 1], [0, 1, 1], [1, 0, 0]]).bool()
+    assert oracle_pick(first).tolist() == [1, 0, 0]  # the first winner; the clean one if it won or none did
+    measured = repeatability(first, second)
+    assert (measured["win_again"], measured["win_after_loss"]) == pytest.approx((0.5, 0.4))  # 2 of 4, 2 of 5
+    assert (measured["clean"], measured["first_draw_oracle_pick"], measured["second_draw_oracle"]) == pytest.approx(
+        (1 / 3, 1 / 3, 1)
+    )
