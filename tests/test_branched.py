@@ -142,8 +142,11 @@ def test_script_collects_trains_both_variants_and_reruns_from_the_stored_data(tr
         "progress=false",
         f"json={tmp_path / 'ranking.json'}",
     ]
-    first = main(argv)
-    assert set(first["variants"]) == {"ranking", "outcome"}
+    first = main([*argv, "learning_curve=[1]"])
+    assert set(first["variants"]) == {"ranking", "outcome"} and set(first["learning_curve"][1]) == {
+        "ranking",
+        "outcome",
+    }
     assert 2 <= first["decisions"] <= 2 * 4  # every 8th decision of 2 episodes of at most 200 steps: 0, 8, 16, 24
     stored = json.loads((tmp_path / "ranking.json").read_text())
     assert json.dumps(stored["variants"]) == json.dumps(first["variants"])  # NaN AUC where no held-out decision splits

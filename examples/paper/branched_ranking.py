@@ -34,7 +34,7 @@ import torch
 from torchrl_dalir import RerankingActor
 from torchrl_dalir.checkpoints import load_policy, load_world_model
 from torchrl_dalir.config import check_choice, parse_config
-from torchrl_dalir.data.branched import collect_branched
+from torchrl_dalir.data.branched import RESET_SEED, collect_branched
 from torchrl_dalir.data.storage import TrajectoryDataset
 from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
 from torchrl_dalir.modules.config import executed_slice
@@ -103,6 +103,7 @@ class Config:
     variants: list[str] = field(default_factory=lambda: ["ranking", "outcome"])
     training: RankingTrainingConfig = field(default_factory=RankingTrainingConfig)
     folds: int = 0  # out-of-fold groups of episodes (0: one per episode)
+    learning_curve: list[int] = field(default_factory=list)  # also the out-of-fold AUCs on the first n episodes
     world_model: str | None = None  # the policy's world model: the imagined-latent variants and the paper's scorer
     mixed: str | None = None  # the policy's mixed data: the no-simulator critics (MIXED_VARIANTS)
     mixed_training: MixedCriticConfig = field(default_factory=MixedCriticConfig)
@@ -152,6 +153,19 @@ def main(argv: list[str]) -> dict:
         cv = cross_validated_auc(outcomes, policy, training, folds=cfg.folds, **imagination)
         results[variant] = {**metrics, "cross_validated": cv}
     print(f"{outcomes}: {int(split.sum())} of {len(outcomes)} decisions split; collected in {collection_seconds:.0f} s")
+    curve = {}  # the out-of-fold AUC on the first n episodes: does more branched data help?
+    for n in cfg.learning_curve:
+        first = outcomes.rows[outcomes.rows[RESET_SEED] < cfg.data_seed + n].to_tensordict()
+        curve[n] = {
+            variant: cross_validated_auc(
+                first, policy, replace(cfg.training, **VARIANTS[variant]), folds=cfg.folds, **imagination
+            )
+            for variant in cfg.variants
+        }
+        print(
+            f"first {n} episodes: "
+            + ", ".join(f"{v} {m['auc']:.3f} ({m['split_decisions']})" for v, m in curve[n].items())
+        )
     baselines = reference_aucs(outcomes, policy)
     if cfg.world_model is not None:
         baselines.update(paper_scorer_aucs(outcomes, policy, cfg.world_model))
@@ -186,6 +200,7 @@ def main(argv: list[str]) -> dict:
         "collection_seconds_this_attempt": round(collection_seconds),
         "reference_aucs": baselines,
         "variants": results,
+        "learning_curve": curve,
         "mixed_data_critics": mixed,
     }
     if cfg.json:
