@@ -411,6 +411,7 @@ def test_main_job_calibration_design_failures_calls_calibrate_on_failures(tmp_pa
             "device": "cpu",
             "reranking": reranking,
             "actor_seed": 2,
+            "critic": None,  # no branched stage, no critic
         }
     ]
     assert json.loads((tmp_path / "calibration.json").read_text())["episodes"] == 40
