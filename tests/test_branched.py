@@ -342,6 +342,8 @@ def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(traine
         seed=11,
         progress=False,
     )
+    with pytest.raises(ValueError, match="another policy"):
+        BranchedOutcomes.load(tmp_path / "branched", policy=untrained_reach_policy())
     again = redraw_outcomes(policy, outcomes, draw=0, only_split=False, progress=False)
     assert torch.equal(again["success"], outcomes.rows["success"])  # the collection's own noise: the same outcomes
     assert torch.equal(again["decision"], outcomes.rows["decision"])

@@ -40,7 +40,7 @@ from torchrl_dalir.evaluation.compare import (
 )
 from torchrl_dalir.reranking import RerankingConfig
 from torchrl_dalir.training.ranking import CRITIC_VARIANTS, RankingTrainingConfig, fit_critic
-from torchrl_dalir.utils import atomic_write, git_commit, weights_digest
+from torchrl_dalir.utils import atomic_write, git_commit
 
 
 @dataclass
@@ -60,12 +60,6 @@ class Config:
     progress: bool = True
 
     def __post_init__(self):
-        if not Path(self.policy).is_file():
-            raise FileNotFoundError(f"no policy checkpoint at {self.policy!r}: pass policy=<checkpoint.pt>")
-        if not (Path(self.branched) / "meta.json").is_file():
-            raise FileNotFoundError(
-                f"no branched outcomes at {self.branched!r}: pass branched=<collect_branched folder>"
-            )
         for variant in self.variants:
             check_choice("variants entry", variant, CRITIC_VARIANTS)
         check_at_least("episodes", self.episodes, 1)
@@ -77,9 +71,7 @@ class Config:
 def main(argv: list[str]) -> dict:
     cfg = parse_config(Config, argv)
     policy = load_policy(cfg.policy)
-    outcomes = BranchedOutcomes.load(cfg.branched)
-    if outcomes.meta.policy_digest != weights_digest(policy):
-        raise ValueError(f"{cfg.branched} holds the candidates of another policy than {cfg.policy}")
+    outcomes = BranchedOutcomes.load(cfg.branched, policy=policy)
     out = Path(cfg.out) / policy.task / Path(cfg.policy).parent.name
     out.mkdir(parents=True, exist_ok=True)
 

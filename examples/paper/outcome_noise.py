@@ -23,7 +23,7 @@ from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.data.branched import BranchedOutcomes
 from torchrl_dalir.evaluation.outcome_noise import redraw_outcomes, repeatability
-from torchrl_dalir.utils import atomic_write, git_commit, weights_digest
+from torchrl_dalir.utils import atomic_write, git_commit
 
 
 @dataclass
@@ -35,21 +35,13 @@ class Config:
     progress: bool = True
 
     def __post_init__(self):
-        if not Path(self.policy).is_file():
-            raise FileNotFoundError(f"no policy checkpoint at {self.policy!r}: pass policy=<checkpoint.pt>")
-        if not (Path(self.branched) / "meta.json").is_file():
-            raise FileNotFoundError(
-                f"no branched outcomes at {self.branched!r}: pass branched=<collect_branched folder>"
-            )
         check_at_least("draw", self.draw, 0)
 
 
 def main(argv: list[str]) -> dict:
     cfg = parse_config(Config, argv)
     policy = load_policy(cfg.policy)
-    outcomes = BranchedOutcomes.load(cfg.branched)
-    if outcomes.meta.policy_digest != weights_digest(policy):
-        raise ValueError(f"{cfg.branched} holds the candidates of another policy than {cfg.policy}")
+    outcomes = BranchedOutcomes.load(cfg.branched, policy=policy)
     start = time.perf_counter()
     redrawn = redraw_outcomes(policy, outcomes, cfg.draw, progress=cfg.progress)
     measured = repeatability(redrawn["first_success"], redrawn["success"])

@@ -184,13 +184,18 @@ class BranchedOutcomes:
         self.root, self.meta, self.rows = root, meta, rows
 
     @classmethod
-    def load(cls, root: str | Path) -> BranchedOutcomes:
+    def load(cls, root: str | Path, policy=None) -> BranchedOutcomes:
+        """The complete outcomes at ``root``; with ``policy``, refuses those of another policy's candidates."""
         root = Path(root)
         if not (root / "meta.json").exists():
             raise FileNotFoundError(
                 f"no branched outcomes at {root} (no meta.json): collect them with collect_branched"
             )
         meta = BranchedMeta(**_read_json(root / "meta.json"))
+        if policy is not None and meta.policy_digest != weights_digest(policy):
+            raise ValueError(
+                f"{root} holds the candidates of another policy (weights digest {meta.policy_digest[:12]})"
+            )
         if not meta.complete:
             raise ValueError(
                 f"the branched outcomes at {root} are unfinished ({len(meta.done_episodes)} of {meta.episodes} "
