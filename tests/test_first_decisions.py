@@ -139,7 +139,7 @@ def test_evaluation_and_calibration_take_a_critic_and_rerank_the_first_decisions
     _, world_model, policy_path = trained_world_model
     critic = _saved_critic(load_policy(policy_path), tmp_path / "critic.pt")
     reranking = RerankingConfig(num_candidates=3, decisions=2, common_noise=True)  # 2 > 1: a StepCounter counts
-    common = dict(episodes=2, seed=1, progress=False, reranking=reranking)
+    common = dict(episodes=1, seed=1, progress=False, reranking=reranking)
     with pytest.raises(ValueError, match="or a critic"):
         evaluate_checkpoints(policy_path, None, methods=["dalir"], **common)
     with pytest.raises(ValueError, match="needs a world_model_path"):

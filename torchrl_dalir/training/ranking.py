@@ -195,7 +195,7 @@ def cross_validated_auc(
     logits = torch.full(success.shape, float("nan"))
     for group in seeds.tensor_split(folds or len(seeds)):
         fold = torch.isin(rows[RESET_SEED], group)
-        if (split & fold).any():
+        if (split & fold).any() and not fold.all():  # a single episode has nothing to train on out of fold
             _, metrics = train_ranking_scorer(rows, policy, cfg, held_out=fold, **kwargs)
             logits[fold] = torch.tensor(metrics["held_out_logits"])
     scored = split & ~logits.isnan().any(-1)
