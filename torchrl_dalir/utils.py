@@ -10,6 +10,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import asdict
 from pathlib import Path
 from typing import BinaryIO
 
@@ -119,6 +120,17 @@ def run_logged(command: list[str], log: str | Path, threads: int = 1) -> tuple[i
     with log.open("a") as stream:
         code = subprocess.run(command, stdout=stream, stderr=subprocess.STDOUT, env=env).returncode
     return code, time.perf_counter() - start
+
+
+def provenance(script: str, argv: list[str], cfg) -> dict:
+    """What a result file records of the run that made it: the command (``script`` with ``argv``), the code's
+    commit, torch's thread count and the whole configuration (a dataclass)."""
+    return {
+        "command": f"python {script} " + " ".join(argv),
+        "commit": git_commit(),
+        "torch_threads": torch.get_num_threads(),
+        "config": asdict(cfg),
+    }
 
 
 def git_commit(folder: str | Path = ".") -> str | None:

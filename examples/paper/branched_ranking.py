@@ -26,7 +26,7 @@ Prints a markdown table; ``json`` writes it with the data's counts.
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -47,7 +47,7 @@ from torchrl_dalir.training.ranking import (
     train_mixed_critic,
     train_ranking_scorer,
 )
-from torchrl_dalir.utils import atomic_write, git_commit
+from torchrl_dalir.utils import atomic_write, provenance
 
 VARIANTS = {
     "ranking": {"ranking": True},
@@ -188,10 +188,7 @@ def main(argv: list[str]) -> dict:
             f"{m['held_out_auc']:.3f} ({m['held_out_split_decisions']}) | {cv['auc']:.3f} ({cv['split_decisions']}) |"
         )
     payload = {
-        "command": "python examples/paper/branched_ranking.py " + " ".join(argv),
-        "commit": git_commit(),
-        "torch_threads": torch.get_num_threads(),
-        "config": asdict(cfg),
+        **provenance("examples/paper/branched_ranking.py", argv, cfg),
         "task": policy.task,
         "run": run,
         "decisions": len(outcomes),

@@ -16,17 +16,15 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
-
-import torch
 
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.evaluation.calibration import TEST_SEED
 from torchrl_dalir.evaluation.candidate_ceiling import candidate_ceiling, summarize_ceiling
 from torchrl_dalir.reranking import RerankingConfig, candidate_generator
-from torchrl_dalir.utils import atomic_write, git_commit, weights_digest
+from torchrl_dalir.utils import atomic_write, provenance, weights_digest
 
 
 @dataclass
@@ -167,10 +165,7 @@ def main(argv: list[str]) -> list[dict]:
     print(table(results))
     if cfg.json:
         payload = {
-            "command": "python examples/paper/candidate_ceiling.py " + " ".join(argv),
-            "commit": git_commit(),
-            "torch_threads": torch.get_num_threads(),
-            "config": asdict(cfg),
+            **provenance("examples/paper/candidate_ceiling.py", argv, cfg),
             "runs": results,
         }
         atomic_write(cfg.json, json.dumps(payload, indent=1) + "\n")

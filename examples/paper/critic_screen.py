@@ -25,8 +25,6 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import torch
-
 from torchrl_dalir.checkpoints import load_policy, save_chunk_critic
 from torchrl_dalir.config import check_at_least, check_choice, parse_config
 from torchrl_dalir.data.branched import BranchedOutcomes
@@ -40,7 +38,7 @@ from torchrl_dalir.evaluation.compare import (
 )
 from torchrl_dalir.reranking import RerankingConfig
 from torchrl_dalir.training.ranking import CRITIC_VARIANTS, RankingTrainingConfig, fit_critic
-from torchrl_dalir.utils import atomic_write, git_commit
+from torchrl_dalir.utils import atomic_write, provenance
 
 
 @dataclass
@@ -107,10 +105,7 @@ def main(argv: list[str]) -> dict:
         f"kept the clean candidate at {choices['clean_chosen']:.0%} of {choices['decisions']} reranked decisions"
     )
     payload = {
-        "command": "python examples/paper/critic_screen.py " + " ".join(argv),
-        "commit": git_commit(),
-        "torch_threads": torch.get_num_threads(),
-        "config": asdict(cfg),
+        **provenance("examples/paper/critic_screen.py", argv, cfg),
         "task": policy.task,
         "run": Path(cfg.policy).parent.name,
         "branched": {

@@ -14,16 +14,14 @@ the stored outcomes come back).
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
-
-import torch
 
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.data.branched import BranchedOutcomes
 from torchrl_dalir.evaluation.outcome_noise import redraw_outcomes, repeatability
-from torchrl_dalir.utils import atomic_write, git_commit
+from torchrl_dalir.utils import atomic_write, provenance
 
 
 @dataclass
@@ -47,10 +45,7 @@ def main(argv: list[str]) -> dict:
     measured = repeatability(redrawn["first_success"], redrawn["success"])
     print(f"{outcomes}: {json.dumps(measured)}")
     payload = {
-        "command": "python examples/paper/outcome_noise.py " + " ".join(argv),
-        "commit": git_commit(),
-        "torch_threads": torch.get_num_threads(),
-        "config": asdict(cfg),
+        **provenance("examples/paper/outcome_noise.py", argv, cfg),
         "task": policy.task,
         "run": Path(cfg.policy).parent.name,
         "seconds": round(time.perf_counter() - start),
