@@ -24,10 +24,13 @@ from torchrl_dalir.evaluation import compare
 from torchrl_dalir.evaluation.success_rate import evaluate
 from torchrl_dalir.modules import (
     LatentEncoder,
+    LatentEncoderModule,
     LatentWorldModel,
     PolicyConfig,
     ScorerEnsemble,
+    ScorerModule,
     TaskCompletionScorer,
+    WorldModelModule,
     make_policy,
 )
 from torchrl_dalir.pipeline import PRESETS, PipelineConfig
@@ -129,6 +132,39 @@ def test_policies_and_actors_refuse_bad_observations_naming_key_and_shape(actor,
     observation, message = BAD_OBSERVATIONS[case]
     with pytest.raises(ValueError, match=message):
         module(observation.clone())
+
+
+@pytest.mark.parametrize("actor", ["policy", "dalir", "dropout policy"])
+@pytest.mark.parametrize("missing", [keys.POINT_CLOUD, keys.AGENT_POS])
+def test_a_missing_observation_key_is_refused_by_name(actor, missing):
+    policy = _policy()
+    module = {"policy": policy, "dalir": _actor(policy), "dropout policy": DropoutPolicy(policy)}[actor]
+    with pytest.raises(KeyError, match=f"reads '{missing}', which the tensordict lacks"):
+        module(_observation().exclude(missing))
+
+
+@pytest.mark.parametrize(
+    ("module", "given"),
+    [
+        (lambda e: LatentEncoderModule(e), {keys.POINT_CLOUD: torch.rand(2, 16, 3)}),
+        (lambda e: WorldModelModule(LatentWorldModel(e.latent_dim, 4, 8, hidden=32, layers=1, heads=2)), {}),
+        (lambda e: ScorerModule(TaskCompletionScorer(e.latent_dim, hidden=32)), {keys.LATENT: torch.rand(2, 128)}),
+    ],
+    ids=["encoder", "world model", "scorer"],
+)
+def test_the_imagination_modules_refuse_a_missing_in_key_by_name(module, given):
+    module = module(LatentEncoder.from_policy(_policy()))
+    missing = [k for k in module.in_keys if k not in given]
+    with pytest.raises(KeyError, match=f"{type(module).__name__} reads '{missing[0]}'"):
+        module(TensorDict(given, [2]))
+
+
+def test_an_empty_dp3_store_is_refused_by_name(tmp_path):
+    from torchrl_dalir.data.dp3_zarr import write_dp3_zarr
+
+    with pytest.raises(ValueError, match="no episode to write"):
+        write_dp3_zarr(tmp_path / "empty.zarr", [])
+    assert not (tmp_path / "empty.zarr").exists()  # refused before anything is written
 
 
 def test_the_message_names_the_policys_own_keys():

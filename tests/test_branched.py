@@ -347,6 +347,18 @@ def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(traine
     again = redraw_outcomes(policy, outcomes, draw=0, only_split=False, progress=False)
     assert torch.equal(again["success"], outcomes.rows["success"])  # the collection's own noise: the same outcomes
     assert torch.equal(again["decision"], outcomes.rows["decision"]) and len(again) >= 2  # decisions 0 and 12, ...
+    # the script: the stored draw, draw 0 again (a check, not a draw) and draw 1 -> an honest ceiling over 2 draws
+    result = script_main("outcome_noise")(
+        [
+            f"policy={checkpoint}",
+            f"branched={tmp_path / 'branched'}",
+            "draws=[0,1]",
+            "only_split=false",
+            "progress=false",
+        ]
+    )
+    assert result["honest_ceiling"]["draws"] == 2 and result["honest_ceiling"]["decisions"] == len(again)
+    assert [row["second"][0] for row in result["decisions"]] == again["success"].int().tolist()  # draw 0, stored
     first = torch.tensor([[0, 1, 1], [1, 0, 1], [0, 0, 0]]).bool()
     second = torch.tensor([[0, 0, 1], [0, 1, 1], [1, 0, 0]]).bool()
     assert oracle_pick(first).tolist() == [1, 0, 0]  # the first winner; the clean one if it won or none did
@@ -355,3 +367,24 @@ def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(traine
     assert (measured["clean"], measured["first_draw_oracle_pick"], measured["second_draw_oracle"]) == pytest.approx(
         (1 / 3, 1 / 3, 1)
     )
+
+
+def test_honest_ceiling_picks_by_the_other_draws_and_cannot_pick_the_lucky_continuation():
+    from torchrl_dalir.evaluation.outcome_noise import honest_ceiling
+
+    # decision 0: candidate 2 wins every draw; decision 1: each candidate wins exactly one draw of three (luck)
+    success = torch.zeros(2, 3, 3, dtype=torch.bool)
+    success[0, 2] = True
+    success[1, [0, 1, 2], [0, 1, 2]] = True
+    ceiling = honest_ceiling(success)
+    # decision 0: the pick is candidate 2 in every fold (3 of 3); decision 1: the pick is a winner of the other
+    # draws (the first of them on a tie), which lost the held-out one (0 of 3)
+    assert ceiling["honest"] == pytest.approx(0.5)
+    assert ceiling["clean"] == pytest.approx((0 + 1 / 3) / 2)
+    assert ceiling["oracle"] == 1.0  # a winner in every draw of both decisions: the clairvoyant pick
+    assert ceiling["honest_gain"] == pytest.approx(1 / 3) and ceiling["oracle_gain"] == pytest.approx(5 / 6)
+    # both split in every held-out draw: decision 0's winner has the best mean elsewhere (AUC 1), decision 1's
+    # won nothing else (AUC 0)
+    assert ceiling["true_chance_auc"] == 0.5
+    with pytest.raises(ValueError, match="at least 2 draws"):
+        honest_ceiling(success[..., :1])

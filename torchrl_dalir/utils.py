@@ -1,4 +1,5 @@
-"""Small shared helpers: atomic file writes, writable folders, digests of weights, logged job processes, Ray."""
+"""Small shared helpers: required tensordict keys, atomic file writes, writable folders, digests of weights,
+logged job processes, Ray."""
 
 from __future__ import annotations
 
@@ -18,6 +19,28 @@ import torch
 
 _UMASK = os.umask(0)  # read once, at import (setting it is the only way to read it)
 os.umask(_UMASK)
+
+
+def require_keys(tensordict, required, reader: str) -> None:
+    """Refuses ``tensordict`` unless it holds every key of ``required``, naming the missing ones, who reads
+    them and the keys it does hold (a missing key otherwise surfaces deep inside as ``None``).
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> require_keys(TensorDict(point_cloud=torch.zeros(2, 3), batch_size=[2]), ["point_cloud", "agent_pos"],
+        ...              "RerankingActor")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        KeyError: "RerankingActor reads 'agent_pos', which the tensordict lacks (it holds ['point_cloud']); ..."
+    """
+    missing = [key for key in required if key not in tensordict.keys(include_nested=True)]
+    if missing:
+        names = ", ".join(repr(k if isinstance(k, str) else tuple(k)) for k in missing)
+        held = sorted(str(k) for k in tensordict.keys(include_nested=True, leaves_only=True))
+        raise KeyError(
+            f"{reader} reads {names}, which the tensordict lacks (it holds {held}); pass observations as "
+            "torchrl_dalir.envs.make_env gives them, or set the module's in_keys to where yours are"
+        )
 
 
 def atomic_write(path: str | Path, content: str | bytes | Callable[[BinaryIO], object]) -> None:

@@ -4,23 +4,31 @@ saved state under another draw of the base policy's noise (:mod:`torchrl_dalir.e
     python examples/paper/outcome_noise.py policy=<run>/checkpoint.pt branched=<collect_branched folder> \\
         json=docs/results/outcome_noise_<run>.json
 
+    # the honest ceiling: every decision (split or not) under the stored draw and three more
+    python examples/paper/outcome_noise.py policy=<run>/checkpoint.pt branched=<folder> draws=[1,2,3] \\
+        only_split=false json=docs/results/honest_ceiling_<run>.json
+
 Prints how often a first-draw winner wins again against a first-draw loser, the within-decision AUC of the
 first draw's outcome as a score of the second's (what a perfect scorer of the chunk could reach at most if the
 outcome were all chunk), and the second draw's success rate of the clean candidate, a random one, the first
 draw's oracle pick and the second draw's own oracle. ``draw=0`` re-runs the collection's own draw (a check:
-the stored outcomes come back).
+the stored outcomes come back). With several ``draws`` it also prints the honest ceiling
+(:func:`~torchrl_dalir.evaluation.outcome_noise.honest_ceiling`) over the stored draw and the new ones: the gain
+of a scorer that knows each chunk's true chance, cross-fitted over draws, beside the clairvoyant oracle.
 """
 
 import json
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+
+import torch
 
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
-from torchrl_dalir.data.branched import BranchedOutcomes
-from torchrl_dalir.evaluation.outcome_noise import redraw_outcomes, repeatability
+from torchrl_dalir.data.branched import DECISION, RESET_SEED, SUCCESS, BranchedOutcomes
+from torchrl_dalir.evaluation.outcome_noise import honest_ceiling, redraw_outcomes, repeatability
 from torchrl_dalir.utils import atomic_write, provenance
 
 
@@ -28,12 +36,16 @@ from torchrl_dalir.utils import atomic_write, provenance
 class Config:
     policy: str = ""  # a policy checkpoint, .../<task>/<policy>_seed<seed>/checkpoint.pt
     branched: str = ""  # its branched outcomes (a complete collect_branched folder)
-    draw: int = 1  # the noise draw after each decision (0: the collection's own)
+    draws: list[int] = field(default_factory=lambda: [1])  # the noise draws after each decision (0: the stored one)
+    only_split: bool = True  # only the decisions whose stored candidates split (False: every decision)
     json: str | None = None
     progress: bool = True
 
     def __post_init__(self):
-        check_at_least("draw", self.draw, 0)
+        if not self.draws or len(set(self.draws)) != len(self.draws):
+            raise ValueError(f"draws must be distinct noise draws, got {self.draws}")
+        for draw in self.draws:
+            check_at_least("draws", draw, 0)
 
 
 def main(argv: list[str]) -> dict:
@@ -41,19 +53,27 @@ def main(argv: list[str]) -> dict:
     policy = load_policy(cfg.policy)
     outcomes = BranchedOutcomes.load(cfg.branched, policy=policy)
     start = time.perf_counter()
-    redrawn = redraw_outcomes(policy, outcomes, cfg.draw, progress=cfg.progress)
-    measured = repeatability(redrawn["first_success"], redrawn["success"])
+    redrawn = [redraw_outcomes(policy, outcomes, d, cfg.only_split, cfg.progress) for d in cfg.draws]
+    stored = redrawn[0]["first_success"]
+    measured = repeatability(stored, redrawn[0][SUCCESS])
     print(f"{outcomes}: {json.dumps(measured)}")
+    # the stored draw and each new one (draw 0 re-runs the stored draw: a check, not another draw)
+    success = torch.stack([stored] + [r[SUCCESS] for d, r in zip(cfg.draws, redrawn) if d != 0], -1)
+    ceiling = honest_ceiling(success) if success.shape[-1] > 1 else None
+    if ceiling is not None:
+        print(f"honest ceiling over {ceiling['draws']} draws: {json.dumps(ceiling)}")
     payload = {
         **provenance("examples/paper/outcome_noise.py", argv, cfg),
         "task": policy.task,
         "run": Path(cfg.policy).parent.name,
         "seconds": round(time.perf_counter() - start),
         "repeatability": measured,
+        "honest_ceiling": ceiling,
+        "draws": cfg.draws,
         "decisions": [
-            {"reset_seed": int(s), "decision": int(d), "first": f.int().tolist(), "second": n.int().tolist()}
+            {"reset_seed": int(s), "decision": int(d), "first": f.int().tolist(), "second": n.int().T.tolist()}
             for s, d, f, n in zip(
-                redrawn["reset_seed"], redrawn["decision"], redrawn["first_success"], redrawn["success"]
+                redrawn[0][RESET_SEED], redrawn[0][DECISION], stored, torch.stack([r[SUCCESS] for r in redrawn], -1)
             )
         ],
     }

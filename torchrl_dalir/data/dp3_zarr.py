@@ -230,6 +230,10 @@ def write_dp3_zarr(store_path: str | Path, episodes: list[dict[str, np.ndarray]]
         >>> write_dp3_zarr(Path(tempfile.mkdtemp()) / "doc_layout.zarr", [episode]).name
         'doc_layout.zarr'
     """
+    if not episodes:
+        raise ValueError(
+            f"write_dp3_zarr({str(store_path)!r}, []): no episode to write (a DP3 store holds at least one)"
+        )
     zarr = _zarr()
     fmt = {"zarr_format": 2} if int(zarr.__version__.split(".")[0]) >= 3 else {}  # zarr 2 writes format 2 by default
     root = zarr.open_group(str(store_path), mode="w", **fmt)

@@ -107,4 +107,60 @@ def repeatability(first: torch.Tensor, second: torch.Tensor) -> dict:
     }
 
 
-__all__ = ["NOISE_DRAW_STRIDE", "decision_state", "noise_seed", "oracle_pick", "redraw_outcomes", "repeatability"]
+def honest_ceiling(success: torch.Tensor) -> dict:
+    """The gain a scorer that knows each chunk's true chance could reach, from outcomes ``[D, K, M]`` of every
+    candidate of ``D`` decisions under ``M >= 2`` independent draws of the base policy's noise after the chunk.
+
+    Cross-fitted over draws: for each held-out draw ``m`` the pick is the candidate with the best mean outcome
+    over the other ``M - 1`` draws (ties go to the lowest index, so the clean candidate 0 first), and it is
+    judged on draw ``m`` alone. Unlike the clairvoyant oracle (a winner of the draw that is judged), it cannot
+    pick the lucky continuation. Returns, averaged over the held-out draws and all ``D`` decisions: the success
+    rate of the clean candidate, a random candidate, the honest pick and the clairvoyant oracle, the honest gain
+    over the clean candidate, and the within-decision AUC of the other draws' mean as a score of the held-out
+    outcome (at the decisions that split in the held-out draw).
+
+    Example:
+        >>> success = torch.tensor([[[0, 0, 0, 1], [1, 1, 1, 0]],    # candidate 1 wins 3 draws of 4
+        ...                         [[1, 1, 0, 0], [1, 1, 0, 0]]])   # the same chance: nothing to gain
+        >>> {k: honest_ceiling(success)[k] for k in ("clean", "honest", "oracle", "honest_gain")}
+        {'clean': 0.375, 'honest': 0.625, 'oracle': 0.75, 'honest_gain': 0.25}
+    """
+    if success.dim() != 3 or success.shape[-1] < 2:
+        raise ValueError(
+            f"success must be [decisions, candidates, draws] with at least 2 draws, got {tuple(success.shape)}"
+        )
+    success = success.bool()
+    draws = success.shape[-1]
+    picked, chance_scores, held_out = [], [], []
+    for m in range(draws):
+        others = [d for d in range(draws) if d != m]
+        chance = success[..., others].float().mean(-1)  # [D, K]: the candidates' estimated chance
+        pick = chance.argmax(-1, keepdim=True)  # the first of the best: candidate 0 on a tie with it
+        picked.append(success[..., m].gather(-1, pick).squeeze(-1).float())
+        chance_scores += chance.tolist()
+        held_out += success[..., m].tolist()
+    clean = float(success[:, 0].float().mean())
+    honest = float(torch.stack(picked).mean())
+    return {
+        "decisions": len(success),
+        "candidates": success.shape[1],
+        "draws": draws,
+        "clean": clean,
+        "random": float(success.float().mean()),
+        "honest": honest,
+        "oracle": float(success.any(1).float().mean()),
+        "honest_gain": honest - clean,
+        "oracle_gain": float(success.any(1).float().mean()) - clean,
+        "true_chance_auc": within_decision_auc(chance_scores, held_out),
+    }
+
+
+__all__ = [
+    "NOISE_DRAW_STRIDE",
+    "decision_state",
+    "honest_ceiling",
+    "noise_seed",
+    "oracle_pick",
+    "redraw_outcomes",
+    "repeatability",
+]

@@ -21,6 +21,7 @@ from torchrl_dalir.modules.config import FLOW_PREDICTIONS, PolicyConfig
 from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 from torchrl_dalir.modules.unet import ConditionalUnet1D
+from torchrl_dalir.utils import require_keys
 
 # A point further outside the policy's training clouds than this, in units of their extent (min-max
 # normalised to [-1, 1]), is refused: a cloud in millimetres instead of metres lands near 1000, and
@@ -224,6 +225,7 @@ class ChunkPolicy3D(TensorDictModuleBase):
         policy's), refused unless they are what the policy acts on (:meth:`check_observation`): a history of
         ``obs_steps`` frames for every batch entry, and the cloud size it was trained on."""
         in_keys = list(in_keys) if in_keys is not None else self.in_keys
+        require_keys(tensordict, in_keys[:2], type(self).__name__)
         cloud, agent_pos = tensordict.get(in_keys[0]), tensordict.get(in_keys[1])
         cloud, agent_pos = self.check_observation(cloud, agent_pos, in_keys)
         to = self.config.obs_steps

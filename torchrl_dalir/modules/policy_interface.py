@@ -42,6 +42,7 @@ from tensordict import NestedKey, TensorDictBase
 
 from torchrl_dalir.modules.config import executed_slice
 from torchrl_dalir.modules.policies import check_point_cloud, check_values
+from torchrl_dalir.utils import require_keys
 
 REQUIRED = ("encode", "sample", "obs_steps", "horizon", "action_steps", "action_dim")
 FAST_PATH = ("point_features", "condition")
@@ -142,6 +143,7 @@ def read_observation(
     if callable(reader):
         return reader(tensordict, in_keys)
     cloud_key, state_key = list(in_keys)[:2]
+    require_keys(tensordict, [cloud_key, state_key], f"{type(policy).__name__}'s actor")
     cloud, agent_pos = tensordict.get(cloud_key), tensordict.get(state_key)
     to = policy.obs_steps
     if cloud.dim() < 3 or cloud.shape[-3] != to or cloud.shape[-1] != 3:

@@ -23,13 +23,14 @@ import copy
 from collections.abc import Sequence
 
 import torch
-from tensordict import NestedKey, TensorDict
+from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import EnsembleModule, TensorDictModule
 from torch import nn
 
 from torchrl_dalir import keys
 from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
+from torchrl_dalir.utils import require_keys
 
 # What LatentEncoder.from_policy copies: DP3's observation encoders and their normalizers (ChunkPolicy3D's).
 POLICY_ENCODERS = ("point_normalizer", "point_encoder", "state_normalizer", "state_encoder")
@@ -304,6 +305,10 @@ class _TensorModule(TensorDictModule):
                     f"got {given}"
                 )
         super().__init__(module, in_keys=in_keys, out_keys=out_keys, method=self.METHOD)
+
+    def forward(self, tensordict: TensorDictBase, *args, **kwargs) -> TensorDictBase:
+        require_keys(tensordict, self.in_keys, type(self).__name__)
+        return super().forward(tensordict, *args, **kwargs)
 
 
 class LatentEncoderModule(_TensorModule):
