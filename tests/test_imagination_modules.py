@@ -93,7 +93,7 @@ def test_readme_snippet_builds_the_modules_from_a_checkpoint(trained_world_model
 
     _, world_model_checkpoint, policy_path = trained_world_model
     B, cloud, agent_pos, actions = 3, torch.rand(3, 64, 3), torch.rand(3, 4), torch.rand(3, 8, 4) * 2 - 1
-    # --- docs/usage.md snippet (section "DALI-R"), verbatim ---
+    # --- docs/guides/dalir.md snippet, verbatim ---
     from tensordict import TensorDict
     from tensordict.nn import TensorDictSequential
 

@@ -9,7 +9,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 from torchrl_dalir import keys  # noqa: E402
 from torchrl_dalir.envs import TASKS, get_task, make_env  # noqa: E402
 
-__version__ = "0.3.0"
+__version__ = "0.3.0"  #: The package's version (as in ``pyproject.toml``).
 
 from torchrl_dalir.modules import DiffusionPolicy3D, FlowMatchingPolicy3D, LatentWorldModel, TaskCompletionScorer  # noqa: E402
 from torchrl_dalir.modules.policy_interface import ChunkPolicy  # noqa: E402

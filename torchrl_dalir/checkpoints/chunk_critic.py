@@ -9,6 +9,7 @@ from torchrl_dalir.checkpoints.files import load_checkpoint, load_weights, save_
 from torchrl_dalir.modules.chunk_critic import ChunkCritic
 from torchrl_dalir.utils import weights_digest
 
+#: What a chunk-critic checkpoint must hold to be loaded.
 CRITIC_ENTRIES = ("architecture", "critic_state", "policy_digest", "metrics")
 
 

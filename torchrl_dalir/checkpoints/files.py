@@ -115,7 +115,7 @@ def load_weights(module: nn.Module, state: dict, entry: str, path: str | Path) -
 
 
 def training_finished(checkpoint_path: str | Path) -> bool:
-    """Whether a training run's checkpoint (:func:`~torchrl_dalir.training.loop.fit`'s) exists and
+    """Whether a training run's checkpoint (:func:`~torchrl_dalir.training.fit`'s) exists and
     holds its last step (not an interrupted run)."""
     path = Path(checkpoint_path)
     if not path.exists():

@@ -16,7 +16,7 @@ from torchrl_dalir.checkpoints.files import load_checkpoint, load_weights
 from torchrl_dalir.envs.make_env import action_bounds
 from torchrl_dalir.modules import ChunkPolicy3D, PolicyConfig, make_policy
 
-# What a policy checkpoint must hold to be loaded (``action_bounds`` is optional: older ones have none).
+#: What a policy checkpoint must hold to be loaded (``action_bounds`` is optional: older ones have none).
 POLICY_ENTRIES = ("task", "policy_config", "action_dim", "state_dim", "num_points", "policy_state")
 
 

@@ -21,7 +21,7 @@ from torchrl_dalir.modules.world_model import LatentEncoder, LatentWorldModel, S
 from torchrl_dalir.selection_config import SelectionConfig
 from torchrl_dalir.utils import weights_digest
 
-# What a world-model checkpoint must hold to be loaded (the scorer ensemble is optional: older ones have none).
+#: What a world-model checkpoint must hold to be loaded (the scorer ensemble is optional: older ones have none).
 WORLD_MODEL_ENTRIES = (
     "task",
     "policy_config",
@@ -224,7 +224,8 @@ def store_selection(world_model_path: str | Path, selection: SelectionConfig, ca
 
     Args:
         world_model_path: the checkpoint, rewritten in place.
-        selection: the rule :meth:`RerankingActor.from_checkpoints` will use with no argument.
+        selection: the rule :meth:`RerankingActor.from_checkpoints
+            <torchrl_dalir.reranking.RerankingActor.from_checkpoints>` will use with no argument.
         calibration: the record of the calibration that chose it.
     """
     state = load_checkpoint(world_model_path, "world_model")

@@ -213,7 +213,7 @@ def collect(
     one is resumed.
 
     Args:
-        task: the task name (or a :class:`TaskSpec`).
+        task: the task name (or a :class:`~torchrl_dalir.envs.TaskSpec`).
         root: the dataset directory.
         sources: the policies to roll out, with their noise and trajectory counts.
         seed: the dataset's data-generation seed (env and noise seeds derive from it).

@@ -56,8 +56,8 @@ def dense_reward_targets(rows: TensorDictBase, gamma: float) -> torch.Tensor:
 
 
 def quality_tag(success: bool, expert_source: bool) -> int:
-    """Index into :data:`keys.QUALITY_TAGS`: a clean expert's success is ``expert``, any other
-    success ``imperfect_success``, and every failure ``failed``."""
+    """Index into :data:`keys.QUALITY_TAGS <torchrl_dalir.keys.QUALITY_TAGS>`: a clean expert's success is
+    ``expert``, any other success ``imperfect_success``, and every failure ``failed``."""
     if not success:
         return keys.QUALITY_TAGS.index("failed")
     return keys.QUALITY_TAGS.index("expert" if expert_source else "imperfect_success")
@@ -88,7 +88,7 @@ class TerminalLabelTransform(Transform):
             mask of valid steps are read.
 
     Writes, each of shape ``[..., T]``: ``"completion_target"`` (float32), ``"terminal_label"``
-    (float32) and ``"quality"`` (int64, an index into :data:`keys.QUALITY_TAGS`).
+    (float32) and ``"quality"`` (int64, an index into :data:`keys.QUALITY_TAGS <torchrl_dalir.keys.QUALITY_TAGS>`).
 
     Example:
         >>> import torch

@@ -74,6 +74,7 @@ def _metaworld(name: str) -> TaskSpec:
     return TaskSpec(name=name, env_id=f"{name}-v3", **_METAWORLD_DEFAULTS, **_METAWORLD_CROP)
 
 
+#: The paper's six tasks by name (:class:`TaskSpec` each); :func:`get_task` also builds any other MetaWorld v3 task.
 TASKS: dict[str, TaskSpec] = {
     "door": TaskSpec(
         name="door",

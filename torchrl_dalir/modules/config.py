@@ -44,7 +44,7 @@ class PolicyConfig:
             its candidates differ by their inputs (point dropout) more than by their noise.
             ``"task"`` (training configurations' default) stands for the task's protocol target,
             ``"sample"`` on Adroit and ``"velocity"`` on MetaWorld; it is resolved before a
-            policy is built (:meth:`~torchrl_dalir.training.policy.PolicyTrainingConfig.resolved`).
+            policy is built (:meth:`~torchrl_dalir.training.PolicyTrainingConfig.resolved`).
         consistency_delta, consistency_segments, consistency_alpha: its time gap, number of
             path segments and velocity-term weight.
 

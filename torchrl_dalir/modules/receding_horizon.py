@@ -67,7 +67,8 @@ def base_policy(actor: TensorDictModuleBase) -> ChunkPolicy | None:
 
 class RecedingHorizonActor(MultiStepActorWrapper):
     """TorchRL's ``MultiStepActorWrapper`` made to run unchanged on an un-batched env, in
-    ``SerialEnv`` and ``ParallelEnv`` and in collectors over each. Build it with :func:`receding_horizon`.
+    ``SerialEnv`` and ``ParallelEnv`` and in collectors over each. Build it with
+    :func:`~torchrl_dalir.receding_horizon`.
 
     Each batch entry replans at its own episode start (``is_init``) or when its plan is used up;
     the others go on with theirs. As in TorchRL, the plan and the step counter travel with the
@@ -187,7 +188,7 @@ def receding_horizon(
     init_key: NestedKey = keys.IS_INIT,
 ) -> RecedingHorizonActor:
     """Wraps any module that writes ``action_chunk`` into a TorchRL actor that executes
-    ``action_steps`` actions per decision (:class:`RecedingHorizonActor`), so
+    ``action_steps`` actions per decision (:class:`~torchrl_dalir.modules.receding_horizon.RecedingHorizonActor`), so
     ``env.rollout(policy=...)`` and collectors run it unchanged, on an un-batched or a batched
     env. The env needs ``is_init`` (``make_env`` adds an ``InitTracker``).
 

@@ -23,7 +23,7 @@ class ConsistencyFlowMatchingLoss(ChunkGenerationLoss):
     :class:`~torchrl_dalir.objectives.FlowMatchingLoss`.
 
     Args:
-        policy: the :class:`FlowMatchingPolicy3D` being trained.
+        policy: the :class:`~torchrl_dalir.modules.FlowMatchingPolicy3D` being trained.
         delta: the time gap between the two predictions (FlowPolicy: 0.01).
         segments: number of path segments (FlowPolicy: 2).
         alpha: weight of the velocity-consistency term.

@@ -17,7 +17,7 @@ class DiffusionLoss(ChunkGenerationLoss):
     renamed with ``set_keys``.
 
     Args:
-        policy: the :class:`DiffusionPolicy3D` being trained.
+        policy: the :class:`~torchrl_dalir.modules.DiffusionPolicy3D` being trained.
 
     Example:
         >>> from tensordict import TensorDict

@@ -22,7 +22,7 @@ class FlowMatchingLoss(ChunkGenerationLoss):
     :class:`~torchrl_dalir.objectives.DiffusionLoss`.
 
     Args:
-        policy: the :class:`FlowMatchingPolicy3D` being trained.
+        policy: the :class:`~torchrl_dalir.modules.FlowMatchingPolicy3D` being trained.
 
     Example:
         >>> from tensordict import TensorDict

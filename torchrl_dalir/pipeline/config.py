@@ -27,9 +27,10 @@ from torchrl_dalir.training.policy import PolicyTrainingConfig
 from torchrl_dalir.training.world_model import PRESETS as WORLD_MODEL_PRESETS
 from torchrl_dalir.training.world_model import WorldModelTrainingConfig
 
-# The job's setting that each derived stage setting comes from (the others share their name).
+#: The job's setting that each derived stage setting comes from (the others share their name).
 DERIVED_FROM = {"data": "out", "mixed_name": "policy and seed", "policy_checkpoint": "out, policy and seed"}
 
+#: The main job's stages, in the order they run (``until=<stage>``, ``redo=[<stage>]``).
 STAGES = ("demos", "policy", "mixed", "exploration", "branched", "world_model", "calibration", "evaluation")
 # Branched episodes of training seed s reset with data seeds BASE + 1000 s + i: dataset seed 900's range, which
 # no collection of the main job reaches (its datasets use seeds 2 s + 1 and 2 s + 2).
@@ -40,58 +41,61 @@ STAGE_LOG = "stages"  # under out: <task>/<run name>.jsonl, a line per finished 
 
 @dataclass
 class PipelineConfig:
-    """Args:
-    task, seed, device, out: passed to every stage; artifacts go under ``out``.
-    demo_seed: the data seed of the task's demos, which every training seed shares (the demos
-        live in ``<out>/data/<task>/demos``; ``seed`` varies the policy, mixed data and world model).
-    policy: the base policy's backbone (``fm`` or ``dp``).
-    base_policy_rollouts: trajectories of the trained base policy added to the mixed data.
-    exploration_rollouts: trajectories of the base policy acting on point-dropout views (one of
-        DALI-R's candidates at random per decision), collected as ``explore_<policy>_seed<seed>``
-        and added to the world model's data (0: none, the paper's data; the ``cpu`` preset: 60).
-    branched_episodes, branched_stride, branched_candidates, branched_decisions: branched outcomes
-        (:mod:`~torchrl_dalir.data.branched`): at every ``branched_stride``-th decision of
-        ``branched_episodes`` base-policy episodes on data seeds (before decision ``branched_decisions``,
-        if not 0), ``branched_candidates`` of DALI-R's
-        candidates are each executed from the saved state and continued with the base policy, in
-        ``<out>/data/<task>/branched_<policy>_seed<seed>``, with the within-decision AUC of a scorer
-        trained on them (``ranking.json`` there). 0 episodes (the default): no branched outcomes.
-    eval_episodes, eval_seed: the test episodes, shared by every method (``eval_methods``: the
-        base policy, DALI-R with the calibrated rule, with the paper's arg-max, and the
-        random-candidate control; ``dropout`` adds the point-dropout policy; see
-        :func:`~torchrl_dalir.evaluation.compare.evaluate_checkpoints`).
-    calibration_episodes, calibration_seed: the validation episodes on which the selection
-        rule's setting is chosen (:mod:`torchrl_dalir.evaluation.calibration`); never the test seed.
-        ``calibration_episodes=0`` keeps the paper's arg-max.
-    calibration_alpha: the evidence a setting needs to be chosen over the base policy (one-sided
-        sign-test p-value on the validation episodes; 1: the setting with the most successes).
-    calibration_confirm_episodes: with ``n > 0``, a chosen setting other than the base policy must
-        win again on ``n`` fresh validation episodes (evaluation seed ``calibration_seed + 1``)
-        to be kept (:func:`~torchrl_dalir.evaluation.calibration.calibrate`); 0 skips it. A grid of
-        several alternatives needs it (30): the best of nine clears the bar by luck (warned).
-    calibration_grid: the settings compared with the base policy (``GRIDS``): ``argmax``, the
-        default, the ensemble arg-max alone (one comparison named in advance, so its p-value
-        holds as it is); ``all``, nine settings of four rules; ``margin``, the margin rule's;
-        ``critic``, the arg-max of the chunk critic that the branched stage trains (needs
-        ``branched_episodes >= 2``; the evaluation's DALI-R methods then carry that critic).
-    calibration_design: ``fixed``, every setting on ``calibration_episodes`` episodes (then the
-        confirmation above), or ``failures``, sized by the base policy's failures: the settings are
-        screened on ``calibration_failures`` episodes it failed and as many it solved, and the most
-        promising one is confirmed on as many fresh episodes of ``calibration_seed + 1`` as the
-        screen took (:func:`~torchrl_dalir.evaluation.calibration.calibrate_on_failures`; ``calibration_episodes``
-        and ``calibration_confirm_episodes`` then only say whether to calibrate at all).
-    num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability (the
-        defaults of :class:`~torchrl_dalir.reranking.RerankingConfig`; :meth:`reranking` gives the record).
-    rerank_decisions: DALI-R reranks only each episode's first ``n`` decisions in calibration and
-        evaluation, the base policy acting alone afterwards (0, the default: every decision;
-        ``RerankingConfig.decisions``).
-    redo: stages to run again from scratch even if their artifact exists
-        (``redo=[world_model]``); later stages are redone too, and each previous run's
-        directory is kept aside.
-    until: the last stage to run (``until=mixed`` makes the policy and its data, then stops).
-    wandb: ``off`` (the default: CSV logs only), ``offline`` or ``online`` (``wandb login`` first):
-        passed to the policy and world-model trainings, and the calibration and evaluation results
-        are logged to wandb runs of their own (:mod:`torchrl_dalir.training.logging`).
+    """The main job's configuration (``examples/train_dp3_wm.py``): its own settings and each stage's,
+    nested (``collection``, ``policy_training``, ``world_model``; ``preset`` picks :data:`PRESETS`).
+
+    Args:
+        task, seed, device, out: passed to every stage; artifacts go under ``out``.
+        demo_seed: the data seed of the task's demos, which every training seed shares (the demos
+            live in ``<out>/data/<task>/demos``; ``seed`` varies the policy, mixed data and world model).
+        policy: the base policy's backbone (``fm`` or ``dp``).
+        base_policy_rollouts: trajectories of the trained base policy added to the mixed data.
+        exploration_rollouts: trajectories of the base policy acting on point-dropout views (one of
+            DALI-R's candidates at random per decision), collected as ``explore_<policy>_seed<seed>``
+            and added to the world model's data (0: none, the paper's data; the ``cpu`` preset: 60).
+        branched_episodes, branched_stride, branched_candidates, branched_decisions: branched outcomes
+            (:mod:`~torchrl_dalir.data.branched`): at every ``branched_stride``-th decision of
+            ``branched_episodes`` base-policy episodes on data seeds (before decision ``branched_decisions``,
+            if not 0), ``branched_candidates`` of DALI-R's
+            candidates are each executed from the saved state and continued with the base policy, in
+            ``<out>/data/<task>/branched_<policy>_seed<seed>``, with the within-decision AUC of a scorer
+            trained on them (``ranking.json`` there). 0 episodes (the default): no branched outcomes.
+        eval_episodes, eval_seed: the test episodes, shared by every method (``eval_methods``: the
+            base policy, DALI-R with the calibrated rule, with the paper's arg-max, and the
+            random-candidate control; ``dropout`` adds the point-dropout policy; see
+            :func:`~torchrl_dalir.evaluation.compare.evaluate_checkpoints`).
+        calibration_episodes, calibration_seed: the validation episodes on which the selection
+            rule's setting is chosen (:mod:`torchrl_dalir.evaluation.calibration`); never the test seed.
+            ``calibration_episodes=0`` keeps the paper's arg-max.
+        calibration_alpha: the evidence a setting needs to be chosen over the base policy (one-sided
+            sign-test p-value on the validation episodes; 1: the setting with the most successes).
+        calibration_confirm_episodes: with ``n > 0``, a chosen setting other than the base policy must
+            win again on ``n`` fresh validation episodes (evaluation seed ``calibration_seed + 1``)
+            to be kept (:func:`~torchrl_dalir.evaluation.calibration.calibrate`); 0 skips it. A grid of
+            several alternatives needs it (30): the best of nine clears the bar by luck (warned).
+        calibration_grid: the settings compared with the base policy (``GRIDS``): ``argmax``, the
+            default, the ensemble arg-max alone (one comparison named in advance, so its p-value
+            holds as it is); ``all``, nine settings of four rules; ``margin``, the margin rule's;
+            ``critic``, the arg-max of the chunk critic that the branched stage trains (needs
+            ``branched_episodes >= 2``; the evaluation's DALI-R methods then carry that critic).
+        calibration_design: ``fixed``, every setting on ``calibration_episodes`` episodes (then the
+            confirmation above), or ``failures``, sized by the base policy's failures: the settings are
+            screened on ``calibration_failures`` episodes it failed and as many it solved, and the most
+            promising one is confirmed on as many fresh episodes of ``calibration_seed + 1`` as the
+            screen took (:func:`~torchrl_dalir.evaluation.calibration.calibrate_on_failures`; ``calibration_episodes``
+            and ``calibration_confirm_episodes`` then only say whether to calibrate at all).
+        num_candidates, dropout: DALI-R's candidates per decision and point-dropout probability (the
+            defaults of :class:`~torchrl_dalir.reranking.RerankingConfig`; :meth:`reranking` gives the record).
+        rerank_decisions: DALI-R reranks only each episode's first ``n`` decisions in calibration and
+            evaluation, the base policy acting alone afterwards (0, the default: every decision;
+            ``RerankingConfig.decisions``).
+        redo: stages to run again from scratch even if their artifact exists
+            (``redo=[world_model]``); later stages are redone too, and each previous run's
+            directory is kept aside.
+        until: the last stage to run (``until=mixed`` makes the policy and its data, then stops).
+        wandb: ``off`` (the default: CSV logs only), ``offline`` or ``online`` (``wandb login`` first):
+            passed to the policy and world-model trainings, and the calibration and evaluation results
+            are logged to wandb runs of their own (:mod:`torchrl_dalir.training.logging`).
     """
 
     task: str = "disassemble"
@@ -279,6 +283,7 @@ def _nest(preset: str) -> dict:
     }
 
 
+#: Named overrides of :class:`PipelineConfig` (``preset=paper|cpu|smoke``), each nesting its stages' presets.
 PRESETS: dict[str, dict] = {
     "paper": {**_nest("paper"), "base_policy_rollouts": 200, "eval_episodes": 100},
     # the reranking protocol (README, Results): exploration data; DALI-R leaves the base policy for the

@@ -23,8 +23,8 @@ from torchrl_dalir.reranking.config import RerankingConfig
 from torchrl_dalir.reranking.search import SearchConfig, search_candidates
 from torchrl_dalir.reranking.selection import SelectionConfig, select
 
-CANDIDATE_SCORES = ("dalir", "candidate_scores")  # [..., K] sigmoid(C(s_hat)) of every candidate (ensemble mean)
-CHOSEN_CANDIDATE = ("dalir", "chosen_candidate")  # [...] index of the executed candidate (0 = clean)
+CANDIDATE_SCORES = ("dalir", "candidate_scores")  #: [..., K] sigmoid(C(s_hat)) of every candidate (ensemble mean)
+CHOSEN_CANDIDATE = ("dalir", "chosen_candidate")  #: [...] index of the executed candidate (0 = clean)
 
 
 def check_imagination(policy: ChunkPolicy, encoder: LatentEncoder, world_model: LatentWorldModel) -> None:
@@ -61,7 +61,7 @@ class RerankingActor(TensorDictModuleBase):
     ``selection`` rule (:mod:`~torchrl_dalir.reranking.selection`; the paper's is
     the arg-max) and write the chosen chunk to ``action_chunk`` (plus every score and the
     chosen index).
-    Wrap it with :func:`~torchrl_dalir.modules.receding_horizon.receding_horizon` exactly like
+    Wrap it with :func:`~torchrl_dalir.receding_horizon` exactly like
     the base policy to execute 8 of 16 actions per decision; every step then carries its decision's
     scores and chosen index. :meth:`reset` replays its decisions from the start.
 
@@ -78,7 +78,7 @@ class RerankingActor(TensorDictModuleBase):
         candidates: the candidate generator (default: the one ``config`` names, :class:`PointDropout`
             ``(0.2)``; or :class:`~torchrl_dalir.reranking.candidates.GaussianObservationNoise`, or
             :class:`~torchrl_dalir.reranking.candidates.CleanObservation`, the seeds of an action-space search),
-            or a generator's name (:data:`~torchrl_dalir.reranking.config.CANDIDATE_GENERATORS`).
+            or a generator's name (:data:`~torchrl_dalir.reranking.CANDIDATE_GENERATORS`).
         search: an action-space search around the generated candidates (default ``none``; random
             shooting, CEM, MPPI or score-gradient ascent on the selection's scorer, see
             :mod:`~torchrl_dalir.reranking.search`): the paper's Table 2 alternatives to point dropout.

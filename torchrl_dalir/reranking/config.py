@@ -15,8 +15,8 @@ from torchrl_dalir.config import check_at_least, check_choice, check_probability
 from torchrl_dalir.reranking.search import SearchConfig
 from torchrl_dalir.selection_config import SelectionConfig
 
-# The candidate generators by name (torchrl_dalir.reranking.candidates): point dropout (DALI-R's),
-# Gaussian observation noise (the paper's baseline), the clean observation only (an action-space search's seeds).
+#: The candidate generators by name (torchrl_dalir.reranking.candidates): point dropout (DALI-R's),
+#: Gaussian observation noise (the paper's baseline), the clean observation only (an action-space search's seeds).
 CANDIDATE_GENERATORS = ("dropout", "noise", "clean")
 
 
@@ -77,7 +77,7 @@ class RerankingConfig:
 
     @property
     def generator_setting(self) -> float:
-        """The candidate generator's own setting: the dropout probability, the noise std, or 0 (``clean``)."""
+        """The candidate generator's own setting (the dropout probability, the noise std, or 0 for ``clean``)."""
         return {"dropout": self.dropout, "noise": self.noise_std}.get(self.candidates, 0.0)
 
     @classmethod

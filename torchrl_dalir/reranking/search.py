@@ -30,6 +30,8 @@ import torch
 from torchrl_dalir.config import check_choice
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
 
+#: The action-space searches by name (:class:`SearchConfig`'s ``method``): none, random shooting, CEM, MPPI,
+#: projected score-gradient ascent.
 SEARCH_METHODS = ("none", "shooting", "cem", "mppi", "gradient")
 
 Objective = Callable[[torch.Tensor], torch.Tensor]  # executed actions [B, N, k, A] (env units) -> score [B, N]

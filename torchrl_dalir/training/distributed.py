@@ -3,7 +3,7 @@
 A job launched as ``torchrun --nproc_per_node=N examples/train_policy.py ...`` runs N copies of
 itself; torchrun tells each its ``RANK``, ``LOCAL_RANK`` and ``WORLD_SIZE``. :func:`setup` joins
 them into one process group (gloo on the CPU, nccl on GPUs, each rank on ``cuda:<LOCAL_RANK>``),
-and :func:`~torchrl_dalir.training.loop.fit` then averages gradients over the ranks. Without
+and :func:`~torchrl_dalir.training.fit` then averages gradients over the ranks. Without
 torchrun (``WORLD_SIZE`` unset or 1) everything here is a no-op: one process, as before.
 
 Every rank draws the same *global* batch from the same generator and trains on its contiguous

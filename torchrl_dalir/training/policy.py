@@ -103,6 +103,7 @@ class PolicyTrainingConfig:
         return Path(self.data) / self.task / "demos"
 
 
+#: Named overrides of :class:`PolicyTrainingConfig` (``preset=paper|cpu|smoke``); ``paper`` is DP3's setting.
 PRESETS: dict[str, dict] = {
     # DP3's configuration: U-Net 512/1024/2048, batch 128, 3000 epochs, AdamW 1e-4.
     "paper": {},

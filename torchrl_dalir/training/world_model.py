@@ -170,6 +170,7 @@ class WorldModelTrainingConfig:
         return Path(self.out) / self.task / f"seed{self.seed}{self.variant()}"
 
 
+#: Named overrides of :class:`WorldModelTrainingConfig` (``preset=paper|cpu|smoke``); ``paper`` is the paper's setting.
 PRESETS: dict[str, dict] = {
     "paper": {},
     # About 10 minutes on a 2-core CPU: the policy's encoder frozen (latents computed once, the
