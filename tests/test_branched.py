@@ -359,6 +359,22 @@ def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(traine
     )
     assert result["honest_ceiling"]["draws"] == 2 and result["honest_ceiling"]["decisions"] == len(again)
     assert [row["second"][0] for row in result["decisions"]] == again["success"].int().tolist()  # draw 0, stored
+    # the teacher's input: the simulator state replayed to each decision, checked against the stored observation
+    from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+    from torchrl_dalir.envs.tasks import get_task
+    from torchrl_dalir.evaluation.outcome_noise import privileged_states
+
+    states = privileged_states(policy, outcomes, progress=False)
+    spec = get_task(policy.task)
+    env = PointCloudObservation(make_simulator(spec), spec, policy.num_points, history=policy.obs_steps)
+    at_reset = torch.as_tensor(env.reset(seed=11)[0]["privileged_state"])
+    env.close()
+    assert states.shape == (len(again), at_reset.shape[0]) and torch.equal(states[0], at_reset)  # decision 0
+    assert not torch.equal(states[0], states[1])  # decision 12 is 12 chunks later
+    tampered = outcomes.rows.to_tensordict()
+    tampered["agent_pos"][1, -1, 0] += 1e-6
+    with pytest.raises(ValueError, match="does not give the stored observation"):
+        privileged_states(policy, tampered, progress=False)
     first = torch.tensor([[0, 1, 1], [1, 0, 1], [0, 0, 0]]).bool()
     second = torch.tensor([[0, 0, 1], [0, 1, 1], [1, 0, 0]]).bool()
     assert oracle_pick(first).tolist() == [1, 0, 0]  # the first winner; the clean one if it won or none did

@@ -11,6 +11,8 @@ learn; if not, the first draw's winners were luck, and no scorer can reach that 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import torch
 from tensordict import TensorDict
 from tqdm.auto import tqdm
@@ -21,7 +23,13 @@ from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
 from torchrl_dalir.objectives.within_state_ranking import split_decisions
-from torchrl_dalir.reranking.branching import base_actions, branch, execute_actions, executed_actions
+from torchrl_dalir.reranking.branching import (
+    base_actions,
+    branch,
+    execute_actions,
+    executed_actions,
+    observation_history,
+)
 
 # Draw d > 0 of the base policy's noise after a decision uses the noise stream of episode seed
 # reset_seed + d * NOISE_DRAW_STRIDE (draw 0 is the collection's own), far from any real reset seed.
@@ -46,6 +54,43 @@ def decision_state(env: PointCloudObservation, policy, reset_seed: int, decision
     return env.get_state(), observations
 
 
+def replayed_decisions(policy, task: str, rows: TensorDict, desc: str, progress: bool, device) -> Iterator[tuple]:
+    """For each branched row, ``(row, env, state, observations)`` at its decision, replayed by
+    :func:`decision_state` in one simulator of ``task`` that is closed at the end."""
+    spec = get_task(task)
+    env = PointCloudObservation(
+        make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps, history=policy.obs_steps
+    )
+    try:
+        for row in tqdm(rows, desc=f"{desc} {spec.name}", disable=not progress):
+            yield row, env, *decision_state(env, policy, int(row[RESET_SEED]), int(row[DECISION]), device)
+    finally:
+        env.close()
+
+
+@torch.no_grad()
+def privileged_states(
+    policy, outcomes: BranchedOutcomes | TensorDict, progress: bool = True, device="cpu"
+) -> torch.Tensor:
+    """The simulator's low-dimensional state ``[D, S]`` (``privileged_state``: what the experts read) at each
+    decision of branched ``outcomes`` (a collection or a table of its rows), replayed from the row's reset seed
+    and decision as :func:`decision_state` does. The replayed observation history must equal the stored one bit
+    for bit (else the replay is not the branched episode, and this refuses it). For a teacher's training only:
+    nothing at test time reads simulator state."""
+    rows = outcomes.rows.to_tensordict() if hasattr(outcomes, "rows") else outcomes
+    task = outcomes.meta.task if hasattr(outcomes, "meta") else policy.task
+    states = []
+    for row, _, _, observations in replayed_decisions(policy, task, rows, "replay", progress, device):
+        cloud, agent_pos = observation_history(policy, observations, "cpu")
+        if not (torch.equal(cloud[0], row[keys.POINT_CLOUD]) and torch.equal(agent_pos[0], row[keys.AGENT_POS])):
+            raise ValueError(
+                f"replaying reset seed {int(row[RESET_SEED])} to decision {int(row[DECISION])} does not give the "
+                "stored observation: another policy, task or simulator version than the branched collection's"
+            )
+        states.append(torch.as_tensor(observations[-1][keys.PRIVILEGED_STATE], dtype=torch.float32))
+    return torch.stack(states)
+
+
 @torch.no_grad()
 def redraw_outcomes(
     policy, outcomes: BranchedOutcomes, draw: int = 1, only_split: bool = True, progress: bool = True, device="cpu"
@@ -57,20 +102,14 @@ def redraw_outcomes(
     rows = outcomes.rows.to_tensordict()
     if only_split:
         rows = rows[split_decisions(rows[SUCCESS])]
-    spec = get_task(outcomes.meta.task)
-    env = PointCloudObservation(
-        make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps, history=policy.obs_steps
-    )
     successes = []
-    try:
-        for row in tqdm(rows, desc=f"redraw {spec.name}", disable=not progress):
-            reset_seed, decision = int(row[RESET_SEED]), int(row[DECISION])
-            state, observations = decision_state(env, policy, reset_seed, decision, device)
-            actions = executed_actions(policy, row[keys.ACTION_CHUNK])
-            seed = noise_seed(reset_seed, draw)
-            successes.append([branch(env, policy, state, observations, a, seed, decision, device)[0] for a in actions])
-    finally:
-        env.close()
+    for row, env, state, observations in replayed_decisions(
+        policy, outcomes.meta.task, rows, "redraw", progress, device
+    ):
+        reset_seed, decision = int(row[RESET_SEED]), int(row[DECISION])
+        actions = executed_actions(policy, row[keys.ACTION_CHUNK])
+        seed = noise_seed(reset_seed, draw)
+        successes.append([branch(env, policy, state, observations, a, seed, decision, device)[0] for a in actions])
     out = rows.select(RESET_SEED, DECISION).clone()
     out.set("first_success", rows[SUCCESS])
     out.set(SUCCESS, torch.tensor(successes, dtype=torch.bool).reshape(rows[SUCCESS].shape))
@@ -161,6 +200,7 @@ __all__ = [
     "honest_ceiling",
     "noise_seed",
     "oracle_pick",
+    "privileged_states",
     "redraw_outcomes",
     "repeatability",
 ]

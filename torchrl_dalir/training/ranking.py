@@ -1,12 +1,18 @@
 """Training a scorer that ranks a decision's candidates, on branched outcomes, and measuring it.
 
-Two inputs, side by side (issue: the world model's error on the candidates exceeds their spread):
+Three inputs, side by side (issue: the world model's error on the candidates exceeds their spread):
 
-- ``state_chunk``: the policy's condition of the decision's observation history, with the
-  candidate's executed actions (min-max normalised on the data): a Q-function of the chunk that
-  never passes through the world model;
+- ``state_chunk``: the policy's condition of the decision's observation history (or the rows' own
+  ``policy_condition``, precomputed), with the candidate's executed actions (min-max normalised on the
+  data): a Q-function of the chunk that never passes through the world model;
 - ``imagined``: the world model's imagined latent after the chunk, as the paper's scorer reads it
-  (needs a world model and its latent encoder).
+  (needs a world model and its latent encoder);
+- ``privileged_chunk``: the simulator's low-dimensional state at the decision (the rows'
+  ``privileged_state``, standardised on the training rows) with the executed actions: a privileged
+  teacher, for measurement and distillation only (nothing at test time reads simulator state).
+
+The target is each candidate's 0/1 branched outcome, or with ``targets="soft"`` the rows'
+``soft_success``, its mean outcome over several draws of the base policy's noise.
 
 The measure is the within-decision AUC on held-out decisions that split
 (:func:`~torchrl_dalir.evaluation.candidate_outcomes.within_decision_auc`), with the held-out
@@ -36,7 +42,11 @@ from torchrl_dalir.objectives.within_state_ranking import CANDIDATE_FEATURES, Wi
 from torchrl_dalir.reranking.candidates import candidate_generator
 from torchrl_dalir.reranking.config import RerankingConfig
 
-INPUTS = ("state_chunk", "imagined")
+INPUTS = ("state_chunk", "imagined", "privileged_chunk")
+TARGETS = ("outcome", "soft")
+POLICY_CONDITION = "policy_condition"  # [B, C] the policy's condition of a decision, precomputed (optional)
+SOFT_SUCCESS = "soft_success"  # [B, K] float, each candidate's mean outcome over noise draws
+TARGET = "target"  # the loss's target in the training table: SUCCESS or SOFT_SUCCESS
 
 
 @dataclass
@@ -47,6 +57,8 @@ class RankingTrainingConfig:
     steps, batch_size, lr, weight_decay: AdamW on batches of decisions.
     outcome_weight: the terminal-label loss beside the ranking loss (:class:`WithinStateRankingLoss`).
     ranking: with ``False``, the terminal-label loss alone (the ablation: outcomes, no ranking).
+    targets: ``outcome`` (the stored 0/1 outcome) or ``soft`` (the rows' ``soft_success``); the measure is
+        always the 0/1 outcome.
     held_out_fraction: the share of episodes (the last ones) held out for the measure.
     seed: initialisation and batch order.
     """
@@ -59,11 +71,13 @@ class RankingTrainingConfig:
     weight_decay: float = 1e-3
     outcome_weight: float = 0.5
     ranking: bool = True
+    targets: str = "outcome"
     held_out_fraction: float = 0.3
     seed: int = 0
 
     def __post_init__(self):
         check_choice("input", self.input, INPUTS)
+        check_choice("targets", self.targets, TARGETS)
         for name in ("steps", "batch_size", "hidden"):
             check_at_least(name, getattr(self, name), 1)
         if not 0 < self.held_out_fraction < 1:
@@ -80,15 +94,34 @@ def candidate_features(
     world_model=None,
 ) -> torch.Tensor:
     """What the scorer reads of each candidate of branched decisions ``rows``: ``[B, K, F]`` (``state_chunk``:
-    ``critic``'s features of the policy's condition and the executed actions; ``imagined``: the imagined latent)."""
-    cloud, agent_pos = rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]
+    ``critic``'s features of the policy's condition and the executed actions; ``privileged_chunk``: of the rows'
+    ``privileged_state`` and the executed actions; ``imagined``: the imagined latent)."""
     executed = _executed(rows, policy)
+    if input == "privileged_chunk":
+        return critic.features(rows[keys.PRIVILEGED_STATE], executed)
     if input == "state_chunk":
-        return critic.features(policy.encode(cloud, agent_pos), executed)
+        return critic.features(policy_conditions(rows, policy), executed)
+    cloud, agent_pos = rows[keys.POINT_CLOUD], rows[keys.AGENT_POS]
     if encoder is None or world_model is None:
         raise ValueError("input=imagined needs the world model and its latent encoder")
     latent = encoder(cloud[:, -1], agent_pos[:, -1]).unsqueeze(1).expand(-1, executed.shape[1], -1)
     return world_model.imagine(latent, executed)
+
+
+def policy_conditions(rows: TensorDict, policy) -> torch.Tensor:
+    """The policy's conditions ``[B, C]`` of branched decisions: the rows' ``policy_condition`` if they hold it
+    (a benchmark without the policy's weights), else the policy's encoding of their observation histories."""
+    if POLICY_CONDITION in rows.keys():
+        return rows[POLICY_CONDITION]
+    return policy.encode(rows[keys.POINT_CLOUD], rows[keys.AGENT_POS])
+
+
+def _standardised_state(rows: TensorDict, train: torch.Tensor) -> TensorDict:
+    """The rows with ``privileged_state`` standardised by the training rows' mean and spread."""
+    state = rows[keys.PRIVILEGED_STATE]
+    reference = state[train]
+    scale = reference.std(0, unbiased=False).clamp(min=1e-3)  # constant coordinates stay at 0
+    return rows.clone(False).set(keys.PRIVILEGED_STATE, (state - reference.mean(0)) / scale)
 
 
 def _rows(outcomes: BranchedOutcomes | TensorDict) -> TensorDict:
@@ -127,17 +160,22 @@ def train_ranking_scorer(
     executed = _executed(rows, policy)
     held_out = (_held_out(rows, cfg.held_out_fraction) if held_out is None else held_out).to(device)
     critic = None
-    if cfg.input == "state_chunk":
-        cond_dim = policy.encode(rows[keys.POINT_CLOUD][:1], rows[keys.AGENT_POS][:1]).shape[-1]
-        critic = ChunkCritic(cond_dim, policy.action_dim, policy.action_steps, hidden=cfg.hidden).to(device)
+    if cfg.input == "privileged_chunk":
+        rows = _standardised_state(rows, ~held_out)
+    if cfg.input in ("state_chunk", "privileged_chunk"):
+        first = rows[:1]
+        cond = first[keys.PRIVILEGED_STATE] if cfg.input == "privileged_chunk" else policy_conditions(first, policy)
+        critic = ChunkCritic(cond.shape[-1], policy.action_dim, policy.action_steps, hidden=cfg.hidden).to(device)
         critic.action_normalizer.fit(executed[~held_out])  # the training episodes' actions only
     features = candidate_features(rows, policy, cfg.input, critic, encoder, world_model)
-    table = TensorDict({CANDIDATE_FEATURES: features, SUCCESS: rows[SUCCESS]}, [len(rows)])
+    target = rows[SOFT_SUCCESS] if cfg.targets == "soft" else rows[SUCCESS]
+    table = TensorDict({CANDIDATE_FEATURES: features, SUCCESS: rows[SUCCESS], TARGET: target}, [len(rows)])
     train, test = table[~held_out], table[held_out]
     scorer = (
         critic.scorer if critic is not None else TaskCompletionScorer(features.shape[-1], hidden=cfg.hidden).to(device)
     )
     loss_module = WithinStateRankingLoss(scorer, cfg.outcome_weight if cfg.ranking else 1.0)
+    loss_module.set_keys(success=TARGET)  # the outcome or its mean over draws; the measure reads SUCCESS
     optimizer = torch.optim.AdamW(scorer.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     generator = torch.Generator().manual_seed(cfg.seed)
 
@@ -180,14 +218,21 @@ def train_ranking_scorer(
 
 
 def cross_validated_auc(
-    outcomes: BranchedOutcomes, policy, cfg: RankingTrainingConfig, folds: int = 0, **kwargs
+    outcomes: BranchedOutcomes,
+    policy,
+    cfg: RankingTrainingConfig,
+    folds: int = 0,
+    judge: torch.Tensor | None = None,
+    **kwargs,
 ) -> dict:
     """The out-of-fold within-decision AUC: the episodes fall into ``folds`` groups (0: one per episode), and the
     decisions of each group are scored by a scorer trained on the others' (:func:`train_ranking_scorer`, with
     ``kwargs``). Every decision that splits is then judged by a scorer that never saw its episode, which uses all
     of them where a single held-out share leaves few. Groups without a split decision are not trained on.
     Also the branches' success rate when each decision executes the clean candidate, the scorer's out-of-fold
-    arg-max, or a winner where one exists: an offline estimate, on data seeds, of what the arg-max would gain."""
+    arg-max, or a winner where one exists: an offline estimate, on data seeds, of what the arg-max would gain.
+    With ``judge`` ``[D, K]`` (e.g. each candidate's mean outcome over several noise draws), the clean and the
+    picked candidates are judged by it instead of the stored outcome."""
     rows = _rows(outcomes)
     success = rows[SUCCESS]
     split = split_decisions(success)
@@ -199,15 +244,19 @@ def cross_validated_auc(
             _, metrics = train_ranking_scorer(rows, policy, cfg, held_out=fold, **kwargs)
             logits[fold] = torch.tensor(metrics["held_out_logits"])
     scored = split & ~logits.isnan().any(-1)
-    picked = success[:, 0].clone()  # where the candidates do not split, any pick does as the clean one
-    picked[scored] = success[scored].gather(-1, logits[scored].argmax(-1, keepdim=True)).squeeze(-1)
+    # the stored outcome: where the candidates do not split, any pick does as the clean one; a judge (the
+    # chance over draws) tells apart the candidates of every decision, so the scorer picks at all it scored
+    asked = scored if judge is None else ~logits.isnan().any(-1)
+    judge = (success if judge is None else judge).float()
+    picked = judge[:, 0].clone()
+    picked[asked] = judge[asked].gather(-1, logits[asked].argmax(-1, keepdim=True)).squeeze(-1)
     return {
         "folds": min(folds, len(seeds)) if folds else len(seeds),
         "split_decisions": int(split.sum()),
         "auc": within_decision_auc(logits[scored].tolist(), success[scored].tolist()),
         # the branches' success rate under three choices: the clean candidate, the scorer's arg-max (out of
         # fold), and a winner wherever there is one (the oracle)
-        "clean_success": success[:, 0].float().mean().item(),
+        "clean_success": judge[:, 0].mean().item(),
         "pick_success": picked.float().mean().item(),
         "oracle_success": success.any(-1).float().mean().item(),
     }
