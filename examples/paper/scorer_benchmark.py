@@ -14,8 +14,6 @@ soft targets) and the privileged teacher (the simulator's low-dimensional state;
 whose inputs the files do not hold are listed as skipped, with the reason.
 """
 
-from __future__ import annotations
-
 import json
 import sys
 import time
