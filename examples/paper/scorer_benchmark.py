@@ -69,21 +69,18 @@ def build(cfg: Config) -> dict:
     """Writes one benchmark file: the branched rows, their redraws and the replayed privileged states."""
     policy = load_policy(cfg.policy)
     rows = BranchedOutcomes.load(cfg.branched, policy=policy).rows.to_tensordict()
-    redrawn = {
-        (d["reset_seed"], d["decision"]): d["second"] for d in json.loads(Path(cfg.redraws).read_text())["decisions"]
-    }
-    missing = [key for key in zip(rows[RESET_SEED].tolist(), rows[DECISION].tolist()) if key not in redrawn]
+    measured = json.loads(Path(cfg.redraws).read_text())
+    redrawn = {(d["reset_seed"], d["decision"]): d["second"] for d in measured["decisions"]}
+    decisions = list(zip(rows[RESET_SEED].tolist(), rows[DECISION].tolist()))
+    missing = [key for key in decisions if key not in redrawn]
     if missing:
         raise ValueError(
             f"{cfg.redraws} lacks {len(missing)} decisions of {cfg.branched} (e.g. {missing[0]}): "
             "run outcome_noise.py with only_split=false"
         )
     # outcome_noise.py stores [draws][K] per decision; a draw 0 re-run is the stored outcome, not a draw
-    draws = json.loads(Path(cfg.redraws).read_text())["draws"]
-    new = [i for i, d in enumerate(draws) if d != 0]
-    redraws = torch.tensor(
-        [[redrawn[key][i] for i in new] for key in zip(rows[RESET_SEED].tolist(), rows[DECISION].tolist())]
-    ).transpose(1, 2)
+    new = [i for i, d in enumerate(measured["draws"]) if d != 0]
+    redraws = torch.tensor([[redrawn[key][i] for i in new] for key in decisions]).transpose(1, 2)
     contents = benchmark_rows(policy, rows, redraws, privileged_states(policy, rows, progress=False))
     contents["source"] = {"policy": cfg.policy, "branched": cfg.branched, "redraws": cfg.redraws}
     save_benchmark(cfg.build, contents)

@@ -36,6 +36,7 @@ from torchrl_dalir import keys
 from torchrl_dalir.data.branched import DECISION, RESET_SEED, SUCCESS
 from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
 from torchrl_dalir.evaluation.outcome_noise import honest_ceiling, repeatability
+from torchrl_dalir.objectives.within_state_ranking import split_decisions
 from torchrl_dalir.training.ranking import (
     POLICY_CONDITION,
     SOFT_SUCCESS,
@@ -123,7 +124,7 @@ def scorer_ladder(
     first = repeatability(rows[SUCCESS], rows[REDRAWS][..., 0])
     ladder = {
         "decisions": len(rows),
-        "split_decisions": int(((rows[SUCCESS].sum(-1) > 0) & (~rows[SUCCESS]).any(-1)).sum()),
+        "split_decisions": int(split_decisions(rows[SUCCESS]).sum()),
         "draws": outcomes.shape[-1],
         "honest_ceiling": honest_ceiling(outcomes),
         "first_outcome": {"auc": first["auc_of_first_draw"]},  # the stored draw scoring the first redraw
