@@ -15,8 +15,18 @@ point-dropout candidates at each episode's first decisions, on the same episodes
    (:func:`~torchrl_dalir.evaluation.compare.evaluate_checkpoints`). The paired sign test and every
    episode's outcome go to ``json``.
 
+With ``student=<scorer benchmark file>`` instead of ``branched=``, the critic is the point-cloud student distilled
+from the privileged teacher (:func:`~torchrl_dalir.training.distillation.train_student`) on that benchmark's
+branched decisions and its distillation file (``benchmarks/scorer/distill/<name>.pt``), trained on all of them;
+its out-of-fold measure is the scorer benchmark's (``docs/results/scorer_benchmark.json``), and the candidates are
+the benchmark's (8 point-dropout candidates, p = 0.2, the clean one first):
+
+    python examples/paper/critic_screen.py policy=<run>/checkpoint.pt \
+        student=benchmarks/scorer/fm_pick_place_wall_s0.pt json=docs/results/student_screen_<run>.json
+
 The rule that decides whether a screen passes is written down before it runs
-(``docs/results/critic_screen_prereg.json``); test episodes (``seed=0``) need ``test=true``.
+(``docs/results/critic_screen_prereg.json``, ``student_screen_prereg.json``); test episodes (``seed=0``) need
+``test=true``.
 """
 
 import json
@@ -25,9 +35,11 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import torch
+
 from torchrl_dalir.checkpoints import load_policy, save_chunk_critic
 from torchrl_dalir.config import check_at_least, check_choice, parse_config
-from torchrl_dalir.data.branched import BranchedOutcomes
+from torchrl_dalir.data.branched import SUCCESS, BranchedOutcomes
 from torchrl_dalir.evaluation.calibration import TEST_SEED
 from torchrl_dalir.evaluation.compare import (
     BASE,
@@ -36,8 +48,10 @@ from torchrl_dalir.evaluation.compare import (
     paired_sign_test,
     pool_decision_summaries,
 )
+from torchrl_dalir.evaluation.scorer_benchmark import REDRAWS, load_benchmark, load_distillation
 from torchrl_dalir.reranking import RerankingConfig
-from torchrl_dalir.training.ranking import CRITIC_VARIANTS, RankingTrainingConfig, fit_critic
+from torchrl_dalir.training.distillation import DistillationConfig, train_student
+from torchrl_dalir.training.ranking import CRITIC_VARIANTS, SOFT_SUCCESS, RankingTrainingConfig, fit_critic
 from torchrl_dalir.utils import atomic_write, provenance
 
 
@@ -45,6 +59,8 @@ from torchrl_dalir.utils import atomic_write, provenance
 class Config:
     policy: str = ""  # a policy checkpoint, .../<task>/<policy>_seed<seed>/checkpoint.pt
     branched: str = ""  # its branched outcomes (a complete collect_branched folder)
+    student: str = ""  # or a scorer benchmark file: screen the student distilled on it and its distillation file
+    distillation: DistillationConfig = field(default_factory=DistillationConfig)
     variants: list[str] = field(default_factory=lambda: ["outcome", "ranking"])
     folds: int = 10  # out-of-fold groups of episodes for choosing the variant
     training: RankingTrainingConfig = field(default_factory=RankingTrainingConfig)
@@ -58,6 +74,8 @@ class Config:
     progress: bool = True
 
     def __post_init__(self):
+        if bool(self.branched) == bool(self.student):
+            raise ValueError("pass branched= (a chunk critic) or student= (a scorer benchmark file), not both")
         for variant in self.variants:
             check_choice("variants entry", variant, CRITIC_VARIANTS)
         check_at_least("episodes", self.episodes, 1)
@@ -66,26 +84,53 @@ class Config:
             raise ValueError(f"seed={TEST_SEED} holds the test episodes: screen on seed=1; test=true once it passed")
 
 
-def main(argv: list[str]) -> dict:
-    cfg = parse_config(Config, argv)
-    policy = load_policy(cfg.policy)
+def chunk_critic(cfg: Config, policy) -> tuple:
+    """The chunk critic of ``cfg.branched`` (the variant with the better out-of-fold AUC), its reranking settings
+    (the branched data's candidates) and what the record keeps of it."""
     outcomes = BranchedOutcomes.load(cfg.branched, policy=policy)
-    out = Path(cfg.out) / policy.task / Path(cfg.policy).parent.name
-    out.mkdir(parents=True, exist_ok=True)
-
-    start = time.perf_counter()
     critic, metrics = fit_critic(outcomes, policy, cfg.training, tuple(cfg.variants), cfg.folds)
-    save_chunk_critic(out / "critic.pt", critic, policy, metrics)
     variant, aucs = metrics["variant"], metrics["out_of_fold"]
     print(
         f"[critic] {outcomes}: out-of-fold AUC { ({v: round(a['auc'], 3) for v, a in aucs.items()}) }; kept {variant}"
     )
-    training_seconds = time.perf_counter() - start
-
     meta = outcomes.meta
     reranking = RerankingConfig.with_generator(
         meta.candidates, meta.setting, num_candidates=meta.num_candidates, common_noise=True, decisions=cfg.decisions
     )
+    branched = {"rows": len(outcomes), "split_decisions": int(outcomes.split_decisions().sum()), **asdict(meta)}
+    branched.pop("done_episodes")
+    record = {"variant": variant, "out_of_fold": aucs, "train_auc": metrics["train_auc"]}
+    return critic, metrics, reranking, {"branched": branched, "critic": record}
+
+
+def distilled_student(cfg: Config, policy) -> tuple:
+    """The student distilled on every decision of the benchmark ``cfg.student`` and its distillation file, the
+    benchmark's candidates, and what the record keeps of it."""
+    rows, info = load_benchmark(cfg.student)
+    if info["task"] != policy.task:
+        raise ValueError(f"{cfg.student} is a {info['task']} benchmark; the policy's task is {policy.task}")
+    states, distill = load_distillation(Path(cfg.student).parent / "distill" / Path(cfg.student).name)
+    chance = torch.cat([rows[SUCCESS].unsqueeze(-1), rows[REDRAWS]], -1).float().mean(-1)
+    student, metrics = train_student(
+        rows.set(SOFT_SUCCESS, chance), policy, cfg.distillation, None, states, distill["encoders"]
+    )
+    print(f"[student] {len(rows)} branched decisions, {len(states)} distillation states")
+    reranking = RerankingConfig(num_candidates=rows[SUCCESS].shape[1], common_noise=True, decisions=cfg.decisions)
+    digests = {"benchmark": info["policy_digest"], "distillation": distill["policy_digest"]}
+    return student, metrics, reranking, {"student": {"benchmark": cfg.student, "policy_digests": digests, **metrics}}
+
+
+def main(argv: list[str]) -> dict:
+    cfg = parse_config(Config, argv)
+    policy = load_policy(cfg.policy)
+    out = Path(cfg.out) / policy.task / Path(cfg.policy).parent.name
+    out.mkdir(parents=True, exist_ok=True)
+
+    start = time.perf_counter()
+    critic, metrics, reranking, record = (distilled_student if cfg.student else chunk_critic)(cfg, policy)
+    save_chunk_critic(out / "critic.pt", critic, policy, metrics)
+    training_seconds = time.perf_counter() - start
+
     rows = evaluate_checkpoints(
         cfg.policy,
         critic=critic,
@@ -108,12 +153,7 @@ def main(argv: list[str]) -> dict:
         **provenance("examples/paper/critic_screen.py", argv, cfg),
         "task": policy.task,
         "run": Path(cfg.policy).parent.name,
-        "branched": {
-            "rows": len(outcomes),
-            "split_decisions": int(outcomes.split_decisions().sum()),
-            **asdict(meta),
-        },
-        "critic": {"variant": variant, "out_of_fold": aucs, "train_auc": metrics["train_auc"]},
+        **record,
         "critic_seconds": round(training_seconds, 1),
         "reranking": {
             "num_candidates": reranking.num_candidates,
@@ -125,7 +165,6 @@ def main(argv: list[str]) -> dict:
         "critic_choices": choices,
         "methods": rows,
     }
-    payload["branched"].pop("done_episodes")
     if cfg.json:
         atomic_write(cfg.json, json.dumps(payload, indent=1) + "\n")
     return payload

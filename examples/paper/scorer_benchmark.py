@@ -6,11 +6,15 @@
     # a benchmark file from a policy's branched first decisions and their redraws (needs the simulator once)
     python examples/paper/scorer_benchmark.py build=benchmarks/scorer/fm_pick_place_wall_s0.pt \\
         policy=<run>/checkpoint.pt branched=<collect_branched folder> redraws=<outcome_noise.py json>
+    # its distillation file: first decisions of fresh data seeds with the policy's candidates (no continuation)
+    python examples/paper/scorer_benchmark.py distill=benchmarks/scorer/distill/fm_pick_place_wall_s0.pt \\
+        policy=<run>/checkpoint.pt states=1000 seed=600000
 
 The file format and the measures are :mod:`torchrl_dalir.evaluation.scorer_benchmark`. The ladder's rungs: the
 honest ceiling (a scorer that knows each chunk's true chance, cross-fitted over draws), a chunk's first outcome
 as a score of its next, the clean candidate, the point-cloud chunk critic (the frozen policy's condition; 0/1 or
-soft targets) and the privileged teacher (the simulator's low-dimensional state; training-time only). Scorers
+soft targets), the privileged teacher (the simulator's low-dimensional state; training-time only) and the student
+distilled from it (a point-cloud critic with encoders of its own, where ``distill/<name>.pt`` exists). Scorers
 whose inputs the files do not hold are listed as skipped, with the reason.
 """
 
@@ -29,19 +33,22 @@ from torchrl_dalir.evaluation.outcome_noise import privileged_states
 from torchrl_dalir.evaluation.scorer_benchmark import (
     SCORERS,
     benchmark_rows,
+    distillation_contents,
+    distillation_states,
     load_benchmark,
+    load_distillation,
     save_benchmark,
     scorer_ladder,
 )
+from torchrl_dalir.reranking.config import RerankingConfig
+from torchrl_dalir.training.distillation import DistillationConfig
 from torchrl_dalir.training.ranking import RankingTrainingConfig
 from torchrl_dalir.utils import atomic_write, provenance
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks" / "scorer"
 # The rungs the committed files cannot measure yet, and why.
-SKIPPED = {
-    "paper_scorer": "needs the run's world-model checkpoint, which the repository does not hold",
-    "student": "the distilled point-cloud critic is not built yet (issue 44, part 3)",
-}
+SKIPPED = {"paper_scorer": "needs the run's world-model checkpoint, which the repository does not hold"}
+NO_DISTILLATION = "no distillation file (distill/<name>.pt) for this benchmark"
 
 
 @dataclass
@@ -50,12 +57,20 @@ class Config:
     scorers: list[str] = field(default_factory=lambda: list(SCORERS))
     folds: int = 10
     training: RankingTrainingConfig = field(default_factory=RankingTrainingConfig)
+    student: bool = True  # the distilled student, where a distillation file exists (the slowest rung)
+    distillation: DistillationConfig = field(default_factory=DistillationConfig)
     json: str | None = None
     # build a benchmark file instead (the path to write), from:
     build: str | None = None
     policy: str = ""  # the policy checkpoint
     branched: str = ""  # its branched first decisions (a complete collect_branched folder)
     redraws: str = ""  # outcome_noise.py's JSON of every decision (only_split=false) under further draws
+    # or a distillation file (the path to write), from policy= (the benchmark's, or one retrained by the same
+    # command: the ladder records both digests) and:
+    distill: str | None = None
+    states: int = 1000  # first decisions of data seeds seed, seed + 1, ... (none shared with the benchmark's)
+    seed: int = 600_000
+    num_candidates: int = 8  # as many as the benchmark's decisions hold
 
     def __post_init__(self):
         unknown = set(self.scorers) - set(SCORERS)
@@ -63,6 +78,8 @@ class Config:
             raise ValueError(f"unknown scorers {sorted(unknown)}; the scorers are {list(SCORERS)}")
         if self.build and not (self.policy and self.branched and self.redraws):
             raise ValueError("build= needs policy=, branched= and redraws= (outcome_noise.py only_split=false json)")
+        if self.distill and not self.policy:
+            raise ValueError("distill= needs policy= (the benchmark's policy checkpoint)")
 
 
 def build(cfg: Config) -> dict:
@@ -88,28 +105,57 @@ def build(cfg: Config) -> dict:
     return contents
 
 
+def build_distillation(cfg: Config) -> dict:
+    """Writes one distillation file: fresh first decisions with the policy's candidates, and its encoders."""
+    policy = load_policy(cfg.policy)
+    states = distillation_states(policy, cfg.seed, cfg.states, RerankingConfig(num_candidates=cfg.num_candidates))
+    contents = distillation_contents(policy, states)
+    contents["source"] = {"policy": cfg.policy, "seed": cfg.seed}
+    save_benchmark(cfg.distill, contents)
+    print(f"{cfg.distill}: {len(states)} decision states x {cfg.num_candidates} candidates")
+    return contents
+
+
 def main(argv: list[str]) -> dict:
     cfg = parse_config(Config, argv)
     if cfg.build:
         build(cfg)
         return {}
+    if cfg.distill:
+        build_distillation(cfg)
+        return {}
     files = [Path(f) for f in cfg.files] or sorted(BENCHMARKS.glob("*.pt"))
     if not files:
         raise FileNotFoundError(f"no benchmark files in {BENCHMARKS}: pass files=[...] or build one (build=...)")
-    results = {}
+    results, skipped = {}, dict(SKIPPED)
     for path in files:
         start = time.perf_counter()
         rows, info = load_benchmark(path)
-        ladder = scorer_ladder(rows, info["sizes"], cfg.training, cfg.folds, {s: SCORERS[s] for s in cfg.scorers})
+        distill = path.parent / "distill" / path.name
+        if cfg.student and not distill.is_file():
+            skipped[f"student ({path.stem})"] = NO_DISTILLATION
+        distill = load_distillation(distill) if cfg.student and distill.is_file() else None
+        if distill is not None and distill[1]["task"] != info["task"]:
+            raise ValueError(f"{path} is {info['task']}, its distillation file {distill[1]['task']}")
+        ladder = scorer_ladder(
+            rows,
+            info["sizes"],
+            cfg.training,
+            cfg.folds,
+            {s: SCORERS[s] for s in cfg.scorers},
+            distill,
+            cfg.distillation,
+        )
         results[path.stem] = {
             "task": info["task"],
             "policy_digest": info["policy_digest"],
+            **({"distillation_policy_digest": distill[1]["policy_digest"]} if distill is not None else {}),
             **ladder,
             "seconds": round(time.perf_counter() - start),
         }
         print(table(path.stem, results[path.stem]), flush=True)
-    print("skipped: " + "; ".join(f"{name} ({why})" for name, why in SKIPPED.items()))
-    payload = {**provenance("examples/paper/scorer_benchmark.py", argv, cfg), "benchmarks": results, "skipped": SKIPPED}
+    print("skipped: " + "; ".join(f"{name}: {why}" for name, why in skipped.items()))
+    payload = {**provenance("examples/paper/scorer_benchmark.py", argv, cfg), "benchmarks": results, "skipped": skipped}
     if cfg.json:
         atomic_write(cfg.json, json.dumps(payload, indent=1) + "\n")
     return payload
@@ -127,7 +173,7 @@ def table(name: str, ladder: dict) -> str:
         f"| clairvoyant oracle | - | {100 * ceiling['oracle_gain']:+.1f} |",
         f"| first outcome | {ladder['first_outcome']['auc']:.3f} | - |",
     ]
-    for rung in ("clean", *SCORERS):
+    for rung in ("clean", *SCORERS, "student"):
         if rung in ladder:
             lines.append(f"| {rung} | {ladder[rung]['auc']:.3f} | {100 * ladder[rung]['gain']:+.1f} |")
     return "\n".join(lines)

@@ -16,10 +16,14 @@ key                     shape                    meaning
 ``reset_seed``          ``[D]``                  the episode's reset seed (a data seed)
 ======================  =======================  ===========================================================
 
-with the policy's digest, task and chunk sizes. :func:`scorer_ladder` measures every scorer on it: out of fold
-(a scorer never sees the decisions it ranks), the within-decision AUC on the decisions that split under the
-collection's draw, and the offline gain, the picked candidate's mean outcome over all ``M`` draws minus the clean
-candidate's, beside the honest ceiling (:func:`~torchrl_dalir.evaluation.outcome_noise.honest_ceiling`).
+with the policy's digest, task and chunk sizes. A *distillation file* beside it (``distill/<name>.pt``) holds what
+a student needs beyond it: decision states of fresh data seeds with the policy's candidates and privileged state
+(:func:`distillation_states`, no continuation, so no outcome) and a copy of the policy's observation encoders to
+start from (:func:`~torchrl_dalir.modules.point_cloud_critic.policy_encoders`). :func:`scorer_ladder` measures
+every scorer on it: out of fold (a scorer never sees the decisions it ranks), the within-decision AUC on the
+decisions that split under the collection's draw, and the offline gain, the picked candidate's mean outcome over
+all ``M`` draws minus the clean candidate's, beside the honest ceiling
+(:func:`~torchrl_dalir.evaluation.outcome_noise.honest_ceiling`).
 """
 
 from __future__ import annotations
@@ -31,12 +35,21 @@ from types import SimpleNamespace
 
 import torch
 from tensordict import TensorDict
+from tqdm.auto import tqdm
 
 from torchrl_dalir import keys
 from torchrl_dalir.data.branched import DECISION, RESET_SEED, SUCCESS
+from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
 from torchrl_dalir.evaluation.outcome_noise import honest_ceiling, repeatability
+from torchrl_dalir.modules.point_cloud_critic import policy_encoders
 from torchrl_dalir.objectives.within_state_ranking import split_decisions
+from torchrl_dalir.reranking.branching import candidate_chunks, observation_history
+from torchrl_dalir.reranking.candidates import candidate_generator
+from torchrl_dalir.reranking.config import RerankingConfig
+from torchrl_dalir.seeds import check_data_seed
+from torchrl_dalir.training.distillation import DistillationConfig, train_student
 from torchrl_dalir.training.ranking import (
     POLICY_CONDITION,
     SOFT_SUCCESS,
@@ -86,6 +99,76 @@ def benchmark_rows(policy, rows: TensorDict, redraws: torch.Tensor, privileged_s
     }
 
 
+@torch.no_grad()
+def distillation_states(
+    policy, seed: int, states: int, reranking: RerankingConfig | None = None, progress: bool = True, device="cpu"
+) -> TensorDict:
+    """The first decision of ``states`` episodes of ``policy``'s task on data seeds ``seed, seed + 1, ...``: the
+    observation history, the simulator's privileged state and the candidates that ``reranking`` makes there (by
+    default 8 point-dropout candidates, candidate 0 the clean one, as in branching), without continuing any. A
+    teacher labels them; a student learns from the labels."""
+    reranking = reranking if reranking is not None else RerankingConfig(num_candidates=8)
+    check_data_seed(seed)
+    check_data_seed(seed + states - 1)
+    spec, generator = get_task(policy.task), candidate_generator(reranking)
+    env = PointCloudObservation(
+        make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps, history=policy.obs_steps
+    )
+    rows = []
+    try:
+        for reset_seed in tqdm(
+            range(seed, seed + states), desc=f"distillation states {spec.name}", disable=not progress
+        ):
+            observation, _ = env.reset(seed=reset_seed)
+            cloud, agent_pos = observation_history(policy, [observation], "cpu")
+            chunks = candidate_chunks(
+                policy, generator, [observation], reranking.num_candidates, reset_seed, 0, reranking.candidates, device
+            )
+            rows.append(
+                {
+                    keys.POINT_CLOUD: cloud[0].half(),
+                    keys.AGENT_POS: agent_pos[0],
+                    keys.PRIVILEGED_STATE: torch.as_tensor(observation[keys.PRIVILEGED_STATE], dtype=torch.float32),
+                    keys.ACTION_CHUNK: chunks.cpu(),
+                    RESET_SEED: torch.tensor(reset_seed),
+                }
+            )
+    finally:
+        env.close()
+    return torch.stack([TensorDict(row, []) for row in rows])
+
+
+def distillation_contents(policy, states: TensorDict) -> dict:
+    """A distillation file's contents: ``states`` (:func:`distillation_states`) and ``policy``'s encoders. A first
+    decision's history repeats its one observation, so one frame is kept (:func:`load_distillation` repeats it),
+    and the candidates are kept in float16: about 2.3 MiB per 500 states of 8 candidates."""
+    history = states[keys.POINT_CLOUD].shape[1]
+    if not all((states[key] == states[key][:, :1]).all() for key in (keys.POINT_CLOUD, keys.AGENT_POS)):
+        raise ValueError("distillation states are first decisions, whose observation history repeats one frame")
+    columns = states.to_dict()
+    for key in (keys.POINT_CLOUD, keys.AGENT_POS):
+        columns[key] = columns[key][:, :1].clone()  # a view would save the whole history
+    columns[keys.ACTION_CHUNK] = columns[keys.ACTION_CHUNK].half()
+    return {
+        "format": FORMAT,
+        "task": policy.task,
+        "policy_digest": weights_digest(policy),
+        "encoders": policy_encoders(policy),
+        "history": history,
+        "rows": columns,
+    }
+
+
+def load_distillation(path: str | Path) -> tuple[TensorDict, dict]:
+    """A distillation file's states (float32 clouds and candidates, the history's frame repeated) and its
+    description (task, digest, the policy's encoders)."""
+    rows, info = load_benchmark(path)
+    for key in (keys.POINT_CLOUD, keys.AGENT_POS):
+        rows[key] = rows[key].repeat_interleave(info.get("history", rows[key].shape[1]) // rows[key].shape[1], 1)
+    rows[keys.ACTION_CHUNK] = rows[keys.ACTION_CHUNK].float()
+    return rows, info
+
+
 def save_benchmark(path: str | Path, contents: dict) -> None:
     """Writes a benchmark file atomically (tensors and plain values only: it loads with ``weights_only``)."""
     buffer = io.BytesIO()
@@ -102,18 +185,25 @@ def load_benchmark(path: str | Path) -> tuple[TensorDict, dict]:
     if contents.get("format") != FORMAT:
         raise ValueError(f"{path} is a scorer benchmark of format {contents.get('format')}, not {FORMAT}")
     columns = contents.pop("rows")
-    rows = TensorDict(columns, batch_size=columns[SUCCESS].shape[:1])
+    rows = TensorDict(columns, batch_size=columns[RESET_SEED].shape[:1])
     rows[keys.POINT_CLOUD] = rows[keys.POINT_CLOUD].float()
     return rows, contents
 
 
 def scorer_ladder(
-    rows: TensorDict, sizes: dict, training: RankingTrainingConfig | None = None, folds: int = 10, scorers=SCORERS
+    rows: TensorDict,
+    sizes: dict,
+    training: RankingTrainingConfig | None = None,
+    folds: int = 10,
+    scorers=SCORERS,
+    distill: tuple[TensorDict, dict] | None = None,
+    distillation: DistillationConfig | None = None,
 ) -> dict:
     """Every rung on one benchmark's decisions: the honest ceiling, the first draw's outcome as a score of the
     others, the clean candidate and each learned scorer of ``scorers`` (out of fold over ``folds`` groups of
-    episodes). AUCs on the decisions that split under the collection's draw; gains over all decisions, judged by
-    the mean over every draw."""
+    episodes), and with ``distill`` (:func:`load_distillation`) the distilled student (``distillation``; its
+    teacher and student trained again in every fold). AUCs on the decisions that split under the collection's
+    draw; gains over all decisions, judged by the mean over every draw."""
     training = training if training is not None else RankingTrainingConfig()
     policy = SimpleNamespace(**sizes)  # the chunk sizes are all a scorer of precomputed inputs needs of the policy
     outcomes = torch.cat([rows[SUCCESS].unsqueeze(-1), rows[REDRAWS]], -1)  # [D, K, M]
@@ -133,4 +223,11 @@ def scorer_ladder(
     for name, settings in scorers.items():
         cv = cross_validated_auc(rows, policy, replace(training, **settings), folds=folds, judge=chance)
         ladder[name] = {"auc": cv["auc"], "gain": cv["pick_success"] - cv["clean_success"], **settings}
+    if distill is not None:
+        states, info = distill
+        distillation = distillation if distillation is not None else DistillationConfig()
+        cv = cross_validated_auc(
+            rows, policy, distillation, folds, chance, train=train_student, distill=states, encoders=info["encoders"]
+        )
+        ladder["student"] = {"auc": cv["auc"], "gain": cv["pick_success"] - cv["clean_success"], "states": len(states)}
     return ladder

@@ -4,6 +4,7 @@ from torchrl_dalir.modules.chunk_critic import ChunkCritic
 from torchrl_dalir.modules.config import PolicyConfig
 from torchrl_dalir.modules.encoders import PointCloudEncoder, StateEncoder
 from torchrl_dalir.modules.normalizer import MinMaxNormalizer
+from torchrl_dalir.modules.point_cloud_critic import PointCloudCritic, PointCloudCriticModule
 from torchrl_dalir.modules.policies import ChunkPolicy3D, DiffusionPolicy3D, FlowMatchingPolicy3D, make_policy
 from torchrl_dalir.modules.policy_interface import ChunkPolicy
 from torchrl_dalir.modules.unet import ConditionalUnet1D
@@ -29,6 +30,8 @@ __all__ = [
     "LatentEncoderModule",
     "LatentWorldModel",
     "MinMaxNormalizer",
+    "PointCloudCritic",
+    "PointCloudCriticModule",
     "PointCloudEncoder",
     "PolicyConfig",
     "ScorerEnsemble",

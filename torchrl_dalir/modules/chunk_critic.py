@@ -44,6 +44,11 @@ class ChunkCritic(nn.Module):
             "hidden": self.hidden,
         }
 
+    def condition(self, policy, cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
+        """The condition ``[B, C]`` it reads of observation histories: ``policy``'s own encoding (a critic with
+        encoders of its own, :class:`~torchrl_dalir.modules.PointCloudCritic`, overrides this)."""
+        return policy.encode(cloud, agent_pos)
+
     def features(self, cond: torch.Tensor, executed: torch.Tensor) -> torch.Tensor:
         """What the MLP reads of each candidate: ``[B, K, C + k * A]``."""
         if cond.shape[-1] != self.cond_dim or executed.shape[-2:] != (self.action_steps, self.action_dim):

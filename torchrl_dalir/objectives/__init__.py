@@ -3,6 +3,7 @@
 from torchrl_dalir.objectives.chunk_generation import ChunkGenerationLoss
 from torchrl_dalir.objectives.common import KeyedLossModule
 from torchrl_dalir.objectives.consistency_flow_matching import ConsistencyFlowMatchingLoss
+from torchrl_dalir.objectives.critic_distillation import CriticDistillationLoss
 from torchrl_dalir.objectives.diffusion import DiffusionLoss
 from torchrl_dalir.objectives.distance_hinge import DistanceHingeLoss
 from torchrl_dalir.objectives.flow_matching import FlowMatchingLoss
@@ -14,6 +15,7 @@ from torchrl_dalir.objectives.within_state_ranking import WithinStateRankingLoss
 __all__ = [
     "ChunkGenerationLoss",
     "ConsistencyFlowMatchingLoss",
+    "CriticDistillationLoss",
     "DiffusionLoss",
     "DistanceHingeLoss",
     "FlowMatchingLoss",

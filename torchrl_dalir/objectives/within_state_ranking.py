@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from torchrl_dalir.objectives.common import KeyedLossModule
@@ -33,7 +34,10 @@ class WithinStateRankingLoss(KeyedLossModule):
 
     Args:
         scorer: maps candidate features ``[B, K, F]`` to logits ``[B, K]`` (e.g. a
-            :class:`~torchrl_dalir.modules.world_model.TaskCompletionScorer` of input size ``F``).
+            :class:`~torchrl_dalir.modules.world_model.TaskCompletionScorer` of input size ``F``), or a TensorDict
+            module that reads what it needs of the batch and writes the logits at its ``out_keys[0]`` (e.g. a
+            :class:`~torchrl_dalir.modules.PointCloudCriticModule`, which reads the observations); the
+            ``features`` key is then not read.
         outcome_weight: the weight of the binary cross-entropy (0: ranking only).
 
     Keys (``set_keys``): ``features`` ``[B, K, F]`` and ``success`` ``[B, K]``.
@@ -73,8 +77,14 @@ class WithinStateRankingLoss(KeyedLossModule):
             raise ValueError(f"outcome_weight must be non-negative, got {outcome_weight}")
         self.scorer, self.outcome_weight = scorer, outcome_weight
 
+    def _read_key_names(self) -> tuple[str, ...]:
+        return ("success",) if isinstance(self.scorer, TensorDictModuleBase) else ("features", "success")
+
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
-        logits = self.scorer(tensordict[self.tensor_keys.features])
+        if isinstance(self.scorer, TensorDictModuleBase):
+            logits = self.scorer(tensordict.copy())[self.scorer.out_keys[0]]
+        else:
+            logits = self.scorer(tensordict[self.tensor_keys.features])
         success = tensordict[self.tensor_keys.success].to(logits.dtype)
         split = split_decisions(success)
         target = success / success.sum(-1, keepdim=True).clamp(min=1)

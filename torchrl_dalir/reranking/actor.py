@@ -89,7 +89,8 @@ class RerankingActor(TensorDictModuleBase):
             ``selection.scorer="ensemble"``).
         critic: a :class:`~torchrl_dalir.modules.ChunkCritic` trained on branched outcomes (needed by
             ``selection.scorer="critic"``, which scores the chunks from the state, without imagination;
-            the default selection when no world model is given).
+            the default selection when no world model is given), or a
+            :class:`~torchrl_dalir.modules.PointCloudCritic`, which reads the cloud through encoders of its own.
         selection: the selection rule (default: the paper's arg-max of the state scorer).
             :meth:`from_checkpoints` uses the rule stored in the world-model checkpoint by
             ``examples/calibrate_selection.py`` unless one is passed.
@@ -266,7 +267,9 @@ class RerankingActor(TensorDictModuleBase):
         """Completion probabilities ``[B, E, K]`` of chunks ``[B, K, H, A]`` by each of the ``E``
         members of the selection's scorer (``E = 1`` for the state scorer)."""
         if self.selection.scorer == "critic":  # Q of the chunk from the state: no imagination
-            members = torch.sigmoid(self.critic(self.policy.encode(cloud, agent_pos), chunks[..., self.executed, :]))
+            members = torch.sigmoid(
+                self.critic(self.critic.condition(self.policy, cloud, agent_pos), chunks[..., self.executed, :])
+            )
             members = members.unsqueeze(1)
         else:
             members = self._probabilities(self.imagine(cloud, agent_pos, chunks))
@@ -285,7 +288,7 @@ class RerankingActor(TensorDictModuleBase):
         from executed actions ``[B, N, k, A]`` (env units) to the members' mean completion
         probability ``[B, N]``, differentiable in the actions (the current latent is encoded once)."""
         if self.selection.scorer == "critic":
-            cond = self.policy.encode(cloud, agent_pos)
+            cond = self.critic.condition(self.policy, cloud, agent_pos)
             return lambda executed: torch.sigmoid(self.critic(cond, executed))
         latent = self.encoder(cloud[:, -1], agent_pos[:, -1])
         return lambda executed: self._probabilities(self._imagine_executed(latent, executed)).mean(1)

@@ -116,12 +116,17 @@ def policy_conditions(rows: TensorDict, policy) -> torch.Tensor:
     return policy.encode(rows[keys.POINT_CLOUD], rows[keys.AGENT_POS])
 
 
+def standardised(state: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """``state`` ``[..., S]`` standardised by the mean and spread of ``reference`` ``[B, S]`` (the training rows'
+    privileged states: what a privileged teacher reads)."""
+    scale = reference.std(0, unbiased=False).clamp(min=1e-3)  # constant coordinates stay at 0
+    return (state - reference.mean(0)) / scale
+
+
 def _standardised_state(rows: TensorDict, train: torch.Tensor) -> TensorDict:
     """The rows with ``privileged_state`` standardised by the training rows' mean and spread."""
     state = rows[keys.PRIVILEGED_STATE]
-    reference = state[train]
-    scale = reference.std(0, unbiased=False).clamp(min=1e-3)  # constant coordinates stay at 0
-    return rows.clone(False).set(keys.PRIVILEGED_STATE, (state - reference.mean(0)) / scale)
+    return rows.clone(False).set(keys.PRIVILEGED_STATE, standardised(state, state[train]))
 
 
 def _rows(outcomes: BranchedOutcomes | TensorDict) -> TensorDict:
@@ -223,6 +228,7 @@ def cross_validated_auc(
     cfg: RankingTrainingConfig,
     folds: int = 0,
     judge: torch.Tensor | None = None,
+    train=None,
     **kwargs,
 ) -> dict:
     """The out-of-fold within-decision AUC: the episodes fall into ``folds`` groups (0: one per episode), and the
@@ -232,7 +238,10 @@ def cross_validated_auc(
     Also the branches' success rate when each decision executes the clean candidate, the scorer's out-of-fold
     arg-max, or a winner where one exists: an offline estimate, on data seeds, of what the arg-max would gain.
     With ``judge`` ``[D, K]`` (e.g. each candidate's mean outcome over several noise draws), the clean and the
-    picked candidates are judged by it instead of the stored outcome."""
+    picked candidates are judged by it instead of the stored outcome. ``train`` replaces
+    :func:`train_ranking_scorer` (same arguments and returns; e.g.
+    :func:`~torchrl_dalir.training.distillation.train_student`)."""
+    train = train if train is not None else train_ranking_scorer
     rows = _rows(outcomes)
     success = rows[SUCCESS]
     split = split_decisions(success)
@@ -241,7 +250,7 @@ def cross_validated_auc(
     for group in seeds.tensor_split(folds or len(seeds)):
         fold = torch.isin(rows[RESET_SEED], group)
         if (split & fold).any() and not fold.all():  # a single episode has nothing to train on out of fold
-            _, metrics = train_ranking_scorer(rows, policy, cfg, held_out=fold, **kwargs)
+            _, metrics = train(rows, policy, cfg, held_out=fold, **kwargs)
             logits[fold] = torch.tensor(metrics["held_out_logits"])
     scored = split & ~logits.isnan().any(-1)
     # the stored outcome: where the candidates do not split, any pick does as the clean one; a judge (the
