@@ -9,8 +9,8 @@ import torch
 from conftest import SHORT_REACH, untrained_reach_policy
 from tensordict import TensorDict
 
-from torchrl_dalir.data import branched
-from torchrl_dalir.data.branched import BranchedOutcomes, collect_branched
+from torchrl_dalir.branching import outcomes as branched
+from torchrl_dalir.branching.outcomes import BranchedOutcomes, collect_branched
 from torchrl_dalir.modules import PolicyConfig, TaskCompletionScorer, make_policy
 from torchrl_dalir.objectives.within_state_ranking import WithinStateRankingLoss
 from torchrl_dalir.reranking import RerankingConfig
@@ -328,8 +328,8 @@ def test_script_measures_imagined_inputs_the_paper_scorers_and_the_no_simulator_
 
 
 def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(trained_policy, tmp_path):
+    from torchrl_dalir.branching.outcome_noise import oracle_pick, redraw_outcomes, repeatability
     from torchrl_dalir.checkpoints import load_policy
-    from torchrl_dalir.evaluation.outcome_noise import oracle_pick, redraw_outcomes, repeatability
 
     _, checkpoint = trained_policy
     policy = load_policy(checkpoint)
@@ -360,9 +360,9 @@ def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(traine
     assert result["honest_ceiling"]["draws"] == 2 and result["honest_ceiling"]["decisions"] == len(again)
     assert [row["second"][0] for row in result["decisions"]] == again["success"].int().tolist()  # draw 0, stored
     # the teacher's input: the simulator state replayed to each decision, checked against the stored observation
+    from torchrl_dalir.branching.outcome_noise import privileged_states
     from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
     from torchrl_dalir.envs.tasks import get_task
-    from torchrl_dalir.evaluation.outcome_noise import privileged_states
 
     states = privileged_states(policy, outcomes, progress=False)
     spec = get_task(policy.task)
@@ -386,7 +386,7 @@ def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(traine
 
 
 def test_honest_ceiling_picks_by_the_other_draws_and_cannot_pick_the_lucky_continuation():
-    from torchrl_dalir.evaluation.outcome_noise import honest_ceiling
+    from torchrl_dalir.branching.outcome_noise import honest_ceiling
 
     # decision 0: candidate 2 wins every draw; decision 1: each candidate wins exactly one draw of three (luck)
     success = torch.zeros(2, 3, 3, dtype=torch.bool)

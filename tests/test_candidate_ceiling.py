@@ -10,14 +10,14 @@ import torch
 from conftest import SHORT_REACH, untrained_reach_policy
 
 from torchrl_dalir import keys
-from torchrl_dalir.evaluation.candidate_ceiling import (
+from torchrl_dalir.branching.ceiling import (
     candidate_ceiling,
     ceiling_episode,
     oracle_choice,
     summarize_ceiling,
 )
+from torchrl_dalir.branching.simulator import branch, candidate_chunks, continue_base, executed_actions
 from torchrl_dalir.reranking import RerankingConfig, candidate_generator
-from torchrl_dalir.reranking.branching import branch, candidate_chunks, continue_base, executed_actions
 
 
 class LineEnv:

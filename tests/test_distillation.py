@@ -10,7 +10,7 @@ from conftest import untrained_reach_policy
 from tensordict import TensorDict
 from test_scorer_benchmark import SIZES, toy_benchmark
 
-from torchrl_dalir.evaluation.scorer_benchmark import scorer_ladder
+from torchrl_dalir.branching.scorer_benchmark import scorer_ladder
 from torchrl_dalir.modules import PointCloudCritic, PointCloudCriticModule
 from torchrl_dalir.modules.point_cloud_critic import ENCODER_PARTS, policy_encoders
 from torchrl_dalir.objectives import CriticDistillationLoss
@@ -140,7 +140,7 @@ def test_the_actor_reranks_by_the_student_and_its_checkpoint_reloads_identical(t
 
 
 def test_a_distillation_file_keeps_one_frame_of_the_history_and_reloads_the_states(tmp_path):
-    from torchrl_dalir.evaluation.scorer_benchmark import distillation_contents, load_distillation, save_benchmark
+    from torchrl_dalir.branching.scorer_benchmark import distillation_contents, load_distillation, save_benchmark
 
     policy = untrained_reach_policy()
     rows, _ = toy_benchmark(decisions=6)
@@ -166,8 +166,8 @@ def test_the_critic_screen_screens_a_student_distilled_on_a_benchmark(trained_po
     import runpy
     from pathlib import Path
 
+    from torchrl_dalir.branching.scorer_benchmark import distillation_contents, distillation_states, save_benchmark
     from torchrl_dalir.checkpoints import load_chunk_critic, load_policy
-    from torchrl_dalir.evaluation.scorer_benchmark import distillation_contents, distillation_states, save_benchmark
     from torchrl_dalir.reranking import RerankingConfig
 
     _, checkpoint = trained_policy

@@ -9,7 +9,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import SerialEnv
 
 from torchrl_dalir import RerankingActor, keys, make_env, receding_horizon
-from torchrl_dalir.evaluation.candidate_outcomes import (
+from torchrl_dalir.branching.candidate_outcomes import (
     candidate_outcomes,
     success_by_score_rank,
     summarize_candidate_outcomes,

@@ -10,8 +10,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from torchrl_dalir.evaluation.outcome_noise import honest_ceiling
-from torchrl_dalir.evaluation.scorer_benchmark import SCORERS, load_benchmark, save_benchmark, scorer_ladder
+from torchrl_dalir.branching.outcome_noise import honest_ceiling
+from torchrl_dalir.branching.scorer_benchmark import SCORERS, load_benchmark, save_benchmark, scorer_ladder
 from torchrl_dalir.training.ranking import RankingTrainingConfig, train_ranking_scorer
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -6,7 +6,7 @@ within-decision AUC on held-out decisions that split (before any test episode).
         json=docs/results/branched_ranking.json
 
 Collects (or resumes) the branched outcomes of ``policy`` under ``<out>/<task>/<run>/`` with
-:func:`~torchrl_dalir.data.branched.collect_branched`, then trains each scorer variant of
+:func:`~torchrl_dalir.branching.outcomes.collect_branched`, then trains each scorer variant of
 ``variants`` on the first episodes and measures it on the last ones
 (:func:`~torchrl_dalir.training.ranking.train_ranking_scorer`): ``ranking`` (listwise loss beside
 the terminal-label loss) and ``outcome`` (the terminal-label loss alone), both on the current
@@ -32,11 +32,11 @@ from pathlib import Path
 import torch
 
 from torchrl_dalir import RerankingActor
+from torchrl_dalir.branching.candidate_outcomes import within_decision_auc
+from torchrl_dalir.branching.outcomes import RESET_SEED, collect_branched
 from torchrl_dalir.checkpoints import load_policy, load_world_model
 from torchrl_dalir.config import check_choice, parse_config
-from torchrl_dalir.data.branched import RESET_SEED, collect_branched
 from torchrl_dalir.data.storage import TrajectoryDataset
-from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
 from torchrl_dalir.modules.config import executed_slice
 from torchrl_dalir.reranking import RerankingConfig, SelectionConfig
 from torchrl_dalir.training.ranking import (

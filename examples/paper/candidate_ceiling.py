@@ -5,7 +5,7 @@ branch succeeded in the simulator, per candidate generator, on validation episod
     python examples/paper/candidate_ceiling.py policies=[...] generators=[dropout,clean] num_candidates=8 episodes=20 \\
         json=docs/results/candidate_ceiling.json
 
-A measurement, never a method (:mod:`torchrl_dalir.evaluation.candidate_ceiling`): it says how
+A measurement, never a method (:mod:`torchrl_dalir.branching.ceiling`): it says how
 much any scorer could gain with these candidates, and which generator has the headroom. Each
 policy's episodes are appended to ``<out>/<task>/<run>.jsonl`` as they finish, so a killed run
 resumes where it stopped, and a second command with the same settings only summarises. Prints a
@@ -19,10 +19,10 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_dalir.branching.ceiling import candidate_ceiling, summarize_ceiling
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.evaluation.calibration import TEST_SEED
-from torchrl_dalir.evaluation.candidate_ceiling import candidate_ceiling, summarize_ceiling
 from torchrl_dalir.reranking import RerankingConfig, candidate_generator
 from torchrl_dalir.utils import atomic_write, provenance, weights_digest
 

@@ -37,9 +37,10 @@ from pathlib import Path
 
 import torch
 
+from torchrl_dalir.branching.outcomes import SUCCESS, BranchedOutcomes
+from torchrl_dalir.branching.scorer_benchmark import REDRAWS, load_benchmark, load_distillation
 from torchrl_dalir.checkpoints import load_policy, save_chunk_critic
 from torchrl_dalir.config import check_at_least, check_choice, parse_config
-from torchrl_dalir.data.branched import SUCCESS, BranchedOutcomes
 from torchrl_dalir.evaluation.calibration import TEST_SEED
 from torchrl_dalir.evaluation.compare import (
     BASE,
@@ -48,7 +49,6 @@ from torchrl_dalir.evaluation.compare import (
     paired_sign_test,
     pool_decision_summaries,
 )
-from torchrl_dalir.evaluation.scorer_benchmark import REDRAWS, load_benchmark, load_distillation
 from torchrl_dalir.reranking import RerankingConfig
 from torchrl_dalir.training.distillation import DistillationConfig, train_student
 from torchrl_dalir.training.ranking import CRITIC_VARIANTS, SOFT_SUCCESS, RankingTrainingConfig, fit_critic

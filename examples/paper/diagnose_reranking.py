@@ -7,7 +7,7 @@
 At the first ``decisions`` decisions of ``episodes`` evaluation episodes (along the base policy),
 runs every candidate's executed actions in the simulator from the same state and compares the
 scorer's rating of the imagined and of the real outcome
-(:func:`torchrl_dalir.evaluation.candidate_outcomes.candidate_outcomes`). ``follow_through=true``
+(:func:`torchrl_dalir.branching.candidate_outcomes.candidate_outcomes`). ``follow_through=true``
 also continues each candidate with the base policy to the episode's end, to see whether the
 scorer prefers the candidates that go on to succeed (slow: one rest-of-episode rollout per
 candidate; use ``stride`` to spread fewer decisions over whole episodes). Prints a summary and
@@ -24,9 +24,9 @@ import torch
 
 from torchrl_dalir import RerankingActor
 from torchrl_dalir.allocator import reuse_freed_memory
+from torchrl_dalir.branching.candidate_outcomes import candidate_outcomes, summarize_candidate_outcomes
 from torchrl_dalir.config import check_at_least, config_dict, parse_config
 from torchrl_dalir.evaluation.calibration import VALIDATION_SEED
-from torchrl_dalir.evaluation.candidate_outcomes import candidate_outcomes, summarize_candidate_outcomes
 from torchrl_dalir.evaluation.compare import check_evaluation_settings
 from torchrl_dalir.evaluation.plots import plot_candidate_outcomes
 from torchrl_dalir.reranking import RerankingConfig, SelectionConfig

@@ -1,5 +1,5 @@
 """Are the first draw's winners winners? Each candidate of branched decisions that split, run again from the same
-saved state under another draw of the base policy's noise (:mod:`torchrl_dalir.evaluation.outcome_noise`).
+saved state under another draw of the base policy's noise (:mod:`torchrl_dalir.branching.outcome_noise`).
 
     python examples/paper/outcome_noise.py policy=<run>/checkpoint.pt branched=<collect_branched folder> \\
         json=docs/results/outcome_noise_<run>.json
@@ -13,7 +13,7 @@ first draw's outcome as a score of the second's (what a perfect scorer of the ch
 outcome were all chunk), and the second draw's success rate of the clean candidate, a random one, the first
 draw's oracle pick and the second draw's own oracle. ``draw=0`` re-runs the collection's own draw (a check:
 the stored outcomes come back). With several ``draws`` it also prints the honest ceiling
-(:func:`~torchrl_dalir.evaluation.outcome_noise.honest_ceiling`) over the stored draw and the new ones: the gain
+(:func:`~torchrl_dalir.branching.outcome_noise.honest_ceiling`) over the stored draw and the new ones: the gain
 of a scorer that knows each chunk's true chance, cross-fitted over draws, beside the clairvoyant oracle.
 """
 
@@ -25,10 +25,10 @@ from pathlib import Path
 
 import torch
 
+from torchrl_dalir.branching.outcome_noise import honest_ceiling, redraw_outcomes, repeatability
+from torchrl_dalir.branching.outcomes import DECISION, RESET_SEED, SUCCESS, BranchedOutcomes
 from torchrl_dalir.checkpoints import load_policy
 from torchrl_dalir.config import check_at_least, parse_config
-from torchrl_dalir.data.branched import DECISION, RESET_SEED, SUCCESS, BranchedOutcomes
-from torchrl_dalir.evaluation.outcome_noise import honest_ceiling, redraw_outcomes, repeatability
 from torchrl_dalir.utils import atomic_write, provenance
 
 

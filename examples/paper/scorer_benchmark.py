@@ -10,7 +10,7 @@
     python examples/paper/scorer_benchmark.py distill=benchmarks/scorer/distill/fm_pick_place_wall_s0.pt \\
         policy=<run>/checkpoint.pt states=1000 seed=600000
 
-The file format and the measures are :mod:`torchrl_dalir.evaluation.scorer_benchmark`. The ladder's rungs: the
+The file format and the measures are :mod:`torchrl_dalir.branching.scorer_benchmark`. The ladder's rungs: the
 honest ceiling (a scorer that knows each chunk's true chance, cross-fitted over draws), a chunk's first outcome
 as a score of its next, the clean candidate, the point-cloud chunk critic (the frozen policy's condition; 0/1 or
 soft targets), the privileged teacher (the simulator's low-dimensional state; training-time only) and the student
@@ -26,11 +26,9 @@ from pathlib import Path
 
 import torch
 
-from torchrl_dalir.checkpoints import load_policy
-from torchrl_dalir.config import parse_config
-from torchrl_dalir.data.branched import DECISION, RESET_SEED, BranchedOutcomes
-from torchrl_dalir.evaluation.outcome_noise import privileged_states
-from torchrl_dalir.evaluation.scorer_benchmark import (
+from torchrl_dalir.branching.outcome_noise import privileged_states
+from torchrl_dalir.branching.outcomes import DECISION, RESET_SEED, BranchedOutcomes
+from torchrl_dalir.branching.scorer_benchmark import (
     SCORERS,
     benchmark_rows,
     distillation_contents,
@@ -40,6 +38,8 @@ from torchrl_dalir.evaluation.scorer_benchmark import (
     save_benchmark,
     scorer_ladder,
 )
+from torchrl_dalir.checkpoints import load_policy
+from torchrl_dalir.config import parse_config
 from torchrl_dalir.reranking.config import RerankingConfig
 from torchrl_dalir.training.distillation import DistillationConfig
 from torchrl_dalir.training.ranking import RankingTrainingConfig

@@ -246,12 +246,12 @@ def plot_candidate_spread(chunks: dict, path: str | Path, title: str = "") -> Pa
 
 def plot_candidate_outcomes(records: list[dict], path: str | Path, title: str = "") -> Path:
     """Imagined against real outcomes of DALI-R's candidates (records of
-    :func:`~torchrl_dalir.evaluation.candidate_outcomes.candidate_outcomes`): (left) every
+    :func:`~torchrl_dalir.branching.candidate_outcomes.candidate_outcomes`): (left) every
     candidate's imagined and real score, each minus its decision's mean, so that only the
     within-decision ordering that reranking uses remains; (middle) the per-decision rank
     correlations; (right, with follow-through records) how often the candidates went on to
     succeed, by the quarter of their imagined score within the decision."""
-    from torchrl_dalir.evaluation.candidate_outcomes import success_by_score_rank
+    from torchrl_dalir.branching.candidate_outcomes import success_by_score_rank
 
     followed = all("final_success" in r for r in records)
     fig, axes = plt.subplots(1, 3 if followed else 2, figsize=(15 if followed else 10, 3.8), dpi=80)

@@ -54,7 +54,7 @@ class PipelineConfig:
             DALI-R's candidates at random per decision), collected as ``explore_<policy>_seed<seed>``
             and added to the world model's data (0: none, the paper's data; the ``cpu`` preset: 60).
         branched_episodes, branched_stride, branched_candidates, branched_decisions: branched outcomes
-            (:mod:`~torchrl_dalir.data.branched`): at every ``branched_stride``-th decision of
+            (:mod:`~torchrl_dalir.branching.outcomes`): at every ``branched_stride``-th decision of
             ``branched_episodes`` base-policy episodes on data seeds (before decision ``branched_decisions``,
             if not 0), ``branched_candidates`` of DALI-R's
             candidates are each executed from the saved state and continued with the base policy, in

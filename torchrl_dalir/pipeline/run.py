@@ -17,6 +17,7 @@ import time
 from functools import partial
 from pathlib import Path
 
+from torchrl_dalir.branching.outcomes import collect_branched
 from torchrl_dalir.checkpoints import (
     load_policy,
     load_world_model,
@@ -27,7 +28,6 @@ from torchrl_dalir.checkpoints import (
 )
 from torchrl_dalir.config import config_dict
 from torchrl_dalir.data import Source, collect
-from torchrl_dalir.data.branched import collect_branched
 from torchrl_dalir.data.storage import is_complete
 from torchrl_dalir.evaluation.calibration import GRIDS, calibrate, calibrate_on_failures
 from torchrl_dalir.evaluation.compare import BASE, DALIR, p_better, paired_sign_test

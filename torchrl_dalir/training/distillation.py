@@ -29,9 +29,9 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from torchrl_dalir import keys
+from torchrl_dalir.branching.candidate_outcomes import within_decision_auc
+from torchrl_dalir.branching.outcomes import SUCCESS
 from torchrl_dalir.config import check_at_least, check_choice
-from torchrl_dalir.data.branched import SUCCESS
-from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
 from torchrl_dalir.modules.point_cloud_critic import (
     CANDIDATE_LOGITS,
     EXECUTED_ACTIONS,

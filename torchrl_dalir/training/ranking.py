@@ -15,7 +15,7 @@ The target is each candidate's 0/1 branched outcome, or with ``targets="soft"`` 
 ``soft_success``, its mean outcome over several draws of the base policy's noise.
 
 The measure is the within-decision AUC on held-out decisions that split
-(:func:`~torchrl_dalir.evaluation.candidate_outcomes.within_decision_auc`), with the held-out
+(:func:`~torchrl_dalir.branching.candidate_outcomes.within_decision_auc`), with the held-out
 decisions taken from whole episodes the scorer never saw.
 """
 
@@ -29,11 +29,11 @@ from tensordict import TensorDict
 from torch import nn
 
 from torchrl_dalir import keys
+from torchrl_dalir.branching.candidate_outcomes import within_decision_auc
+from torchrl_dalir.branching.outcomes import RESET_SEED, SUCCESS, BranchedOutcomes
 from torchrl_dalir.config import check_at_least, check_choice
-from torchrl_dalir.data.branched import RESET_SEED, SUCCESS, BranchedOutcomes
 from torchrl_dalir.data.storage import TrajectoryDataset
 from torchrl_dalir.data.windows import TrajectoryWindows
-from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
 from torchrl_dalir.modules.chunk_critic import ChunkCritic
 from torchrl_dalir.modules.config import executed_slice
 from torchrl_dalir.modules.world_model import TaskCompletionScorer

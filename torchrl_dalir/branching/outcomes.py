@@ -4,19 +4,19 @@ The mixed data labels trajectories, so a scorer trained on it learns outcomes *a
 never sees candidates from the same state compete. Here, along base-policy episodes on data seeds,
 every candidate of a decision is executed from the saved state and continued with the base policy
 to the episode's end (common random numbers, as in
-:mod:`~torchrl_dalir.evaluation.candidate_ceiling`), and each decision is stored as one row:
+:mod:`~torchrl_dalir.branching.ceiling`), and each decision is stored as one row:
 
-==================  ===============  ===============================================================
-key                 shape            meaning
-==================  ===============  ===============================================================
-``point_cloud``     ``[To, N, 3]``   the decision's observation history
-``agent_pos``       ``[To, D]``      its robot state history
-``action_chunk``    ``[K, H, A]``    the candidates (0: the base policy's own chunk)
-``success``         ``[K]`` bool     whether each candidate's branch succeeded by the episode's end
-``steps_to_success````[K]`` int      steps from the decision to that success (-1: none)
-``reset_seed``      ``[]``           the episode's reset seed (a data seed)
-``decision``        ``[]``           the decision's index in its episode
-==================  ===============  ===============================================================
+======================  ===============  ===============================================================
+key                     shape            meaning
+======================  ===============  ===============================================================
+``point_cloud``         ``[To, N, 3]``   the decision's observation history
+``agent_pos``           ``[To, D]``      its robot state history
+``action_chunk``        ``[K, H, A]``    the candidates (0: the base policy's own chunk)
+``success``             ``[K]`` bool     whether each candidate's branch succeeded by the episode's end
+``steps_to_success``    ``[K]`` int      steps from the decision to that success (-1: none)
+``reset_seed``          ``[]``           the episode's reset seed (a data seed)
+``decision``            ``[]``           the decision's index in its episode
+======================  ===============  ===============================================================
 
 Layout and crash safety follow :mod:`~torchrl_dalir.data.storage`: ``meta.json``, one memory-mapped
 shard per finished episode (renamed into place), then ``rows/`` once complete. A killed collection
@@ -36,12 +36,12 @@ from torchrl.data import ReplayBuffer, TensorStorage
 from tqdm.auto import tqdm
 
 from torchrl_dalir import keys
+from torchrl_dalir.branching.simulator import base_episode, branch_decision, observation_history
 from torchrl_dalir.config import check_at_least
 from torchrl_dalir.data.storage import _memmap_atomically, _read_json
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 from torchrl_dalir.objectives.within_state_ranking import split_decisions
-from torchrl_dalir.reranking.branching import base_episode, branch_decision, observation_history
 from torchrl_dalir.reranking.candidates import candidate_generator
 from torchrl_dalir.reranking.config import RerankingConfig
 from torchrl_dalir.seeds import check_data_seed

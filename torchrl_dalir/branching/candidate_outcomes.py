@@ -21,10 +21,10 @@ import torch
 from scipy.stats import mannwhitneyu, rankdata, spearmanr
 from tqdm.auto import tqdm
 
+from torchrl_dalir.branching.simulator import execute_actions, observation_history, stack_observations
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 from torchrl_dalir.reranking.actor import RerankingActor
-from torchrl_dalir.reranking.branching import execute_actions, observation_history, stack_observations
 from torchrl_dalir.seeds import eval_episode_seed
 
 

@@ -4,8 +4,8 @@ Common random numbers make branches comparable and cheap: the base policy's samp
 decision ``j`` of an episode depends only on the episode and ``j`` (:func:`decision_noise`), and
 candidate 0 is the base policy's own chunk, so the clean candidate's branch from decision ``j`` is
 the base episode itself from there on. Used by the candidates' ceiling
-(:mod:`~torchrl_dalir.evaluation.candidate_ceiling`) and the branched outcomes
-(:mod:`~torchrl_dalir.data.branched`).
+(:mod:`~torchrl_dalir.branching.ceiling`) and the branched outcomes
+(:mod:`~torchrl_dalir.branching.outcomes`).
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ candidate's outcome under the base policy: what a scorer that knows those outcom
 not a bound on every chooser: one that leaves the clean candidate at several decisions, none of
 which succeeds alone under the base policy, can succeed where the oracle fails.
 
-Common random numbers make this cheap and exact (:mod:`~torchrl_dalir.reranking.branching`): the
+Common random numbers make this cheap and exact (:mod:`~torchrl_dalir.branching.simulator`): the
 clean candidate's branch from decision ``j`` *is* the base episode from there on, and after the
 oracle executes a winning candidate its next clean candidate replays that winning branch. The
 oracle's episode therefore succeeds exactly when the base
@@ -27,11 +27,11 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from torchrl_dalir.branching.simulator import base_episode, branch_decision
 from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import TaskSpec, get_task
 from torchrl_dalir.evaluation.calibration import TEST_SEED
-from torchrl_dalir.reranking.branching import base_episode, branch_decision
 from torchrl_dalir.seeds import eval_episode_seed
 
 

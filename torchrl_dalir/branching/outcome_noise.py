@@ -1,7 +1,7 @@
 """Is a candidate's branched outcome a property of its chunk, or of the noise that follows it?
 
-The branched outcomes (:mod:`~torchrl_dalir.data.branched`) and the candidates' ceiling
-(:mod:`~torchrl_dalir.evaluation.candidate_ceiling`) continue every candidate with the base policy
+The branched outcomes (:mod:`~torchrl_dalir.branching.outcomes`) and the candidates' ceiling
+(:mod:`~torchrl_dalir.branching.ceiling`) continue every candidate with the base policy
 under one draw of its sampling noise (common random numbers). An oracle that picks a winner of that
 draw knows the future noise; a scorer of the state and the chunk cannot. Here each stored candidate is
 executed again from the same saved state and continued under *another* draw of the base policy's noise:
@@ -18,18 +18,18 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 from torchrl_dalir import keys
-from torchrl_dalir.data.branched import DECISION, RESET_SEED, SUCCESS, BranchedOutcomes
-from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
-from torchrl_dalir.envs.tasks import get_task
-from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
-from torchrl_dalir.objectives.within_state_ranking import split_decisions
-from torchrl_dalir.reranking.branching import (
+from torchrl_dalir.branching.candidate_outcomes import within_decision_auc
+from torchrl_dalir.branching.outcomes import DECISION, RESET_SEED, SUCCESS, BranchedOutcomes
+from torchrl_dalir.branching.simulator import (
     base_actions,
     branch,
     execute_actions,
     executed_actions,
     observation_history,
 )
+from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+from torchrl_dalir.envs.tasks import get_task
+from torchrl_dalir.objectives.within_state_ranking import split_decisions
 
 # Draw d > 0 of the base policy's noise after a decision uses the noise stream of episode seed
 # reset_seed + d * NOISE_DRAW_STRIDE (draw 0 is the collection's own), far from any real reset seed.
@@ -43,7 +43,7 @@ def noise_seed(reset_seed: int, draw: int) -> int:
 
 def decision_state(env: PointCloudObservation, policy, reset_seed: int, decision: int, device) -> tuple:
     """The simulator state and the observations at ``decision`` of the base episode reset with ``reset_seed``
-    (the base policy's own chunks before it, as in :func:`~torchrl_dalir.reranking.branching.base_episode`)."""
+    (the base policy's own chunks before it, as in :func:`~torchrl_dalir.branching.simulator.base_episode`)."""
     observation, _ = env.reset(seed=reset_seed)
     observations = [observation]
     for j in range(decision):

@@ -23,7 +23,7 @@ start from (:func:`~torchrl_dalir.modules.point_cloud_critic.policy_encoders`). 
 every scorer on it: out of fold (a scorer never sees the decisions it ranks), the within-decision AUC on the
 decisions that split under the collection's draw, and the offline gain, the picked candidate's mean outcome over
 all ``M`` draws minus the clean candidate's, beside the honest ceiling
-(:func:`~torchrl_dalir.evaluation.outcome_noise.honest_ceiling`).
+(:func:`~torchrl_dalir.branching.outcome_noise.honest_ceiling`).
 """
 
 from __future__ import annotations
@@ -38,14 +38,14 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 from torchrl_dalir import keys
-from torchrl_dalir.data.branched import DECISION, RESET_SEED, SUCCESS
+from torchrl_dalir.branching.candidate_outcomes import within_decision_auc
+from torchrl_dalir.branching.outcome_noise import honest_ceiling, repeatability
+from torchrl_dalir.branching.outcomes import DECISION, RESET_SEED, SUCCESS
+from torchrl_dalir.branching.simulator import candidate_chunks, observation_history
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import get_task
-from torchrl_dalir.evaluation.candidate_outcomes import within_decision_auc
-from torchrl_dalir.evaluation.outcome_noise import honest_ceiling, repeatability
 from torchrl_dalir.modules.point_cloud_critic import policy_encoders
 from torchrl_dalir.objectives.within_state_ranking import split_decisions
-from torchrl_dalir.reranking.branching import candidate_chunks, observation_history
 from torchrl_dalir.reranking.candidates import candidate_generator
 from torchrl_dalir.reranking.config import RerankingConfig
 from torchrl_dalir.seeds import check_data_seed
@@ -74,7 +74,7 @@ SCORERS = {
 def benchmark_rows(policy, rows: TensorDict, redraws: torch.Tensor, privileged_state: torch.Tensor) -> dict:
     """A benchmark file's contents from branched ``rows`` of ``policy`` (the collection's decisions), their
     ``redraws`` ``[D, K, M - 1]`` and ``privileged_state`` ``[D, S]``
-    (:func:`~torchrl_dalir.evaluation.outcome_noise.privileged_states`)."""
+    (:func:`~torchrl_dalir.branching.outcome_noise.privileged_states`)."""
     if redraws.shape[:2] != rows[SUCCESS].shape or privileged_state.shape[0] != len(rows):
         raise ValueError(
             f"redraws {tuple(redraws.shape)} and privileged_state {tuple(privileged_state.shape)} must cover the "
