@@ -35,10 +35,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import torch
-
 from torchrl_dalir.branching.outcomes import SUCCESS, BranchedOutcomes
-from torchrl_dalir.branching.scorer_benchmark import REDRAWS, load_benchmark, load_distillation
+from torchrl_dalir.branching.scorer_benchmark import all_draws, load_benchmark, load_distillation
 from torchrl_dalir.checkpoints import load_policy, save_chunk_critic
 from torchrl_dalir.config import check_at_least, check_choice, parse_config
 from torchrl_dalir.evaluation.calibration import TEST_SEED
@@ -110,7 +108,7 @@ def distilled_student(cfg: Config, policy) -> tuple:
     if info["task"] != policy.task:
         raise ValueError(f"{cfg.student} is a {info['task']} benchmark; the policy's task is {policy.task}")
     states, distill = load_distillation(Path(cfg.student).parent / "distill" / Path(cfg.student).name)
-    chance = torch.cat([rows[SUCCESS].unsqueeze(-1), rows[REDRAWS]], -1).float().mean(-1)
+    chance = all_draws(rows).float().mean(-1)
     student, metrics = train_student(
         rows.set(SOFT_SUCCESS, chance), policy, cfg.distillation, None, states, distill["encoders"]
     )

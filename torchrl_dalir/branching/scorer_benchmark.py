@@ -190,6 +190,11 @@ def load_benchmark(path: str | Path) -> tuple[TensorDict, dict]:
     return rows, contents
 
 
+def all_draws(rows: TensorDict) -> torch.Tensor:
+    """Every candidate's outcomes ``[D, K, M]`` of a benchmark's decisions: the collection's draw, then the redraws."""
+    return torch.cat([rows[SUCCESS].unsqueeze(-1), rows[REDRAWS]], -1)
+
+
 def scorer_ladder(
     rows: TensorDict,
     sizes: dict,
@@ -206,7 +211,7 @@ def scorer_ladder(
     draw; gains over all decisions, judged by the mean over every draw."""
     training = training if training is not None else RankingTrainingConfig()
     policy = SimpleNamespace(**sizes)  # the chunk sizes are all a scorer of precomputed inputs needs of the policy
-    outcomes = torch.cat([rows[SUCCESS].unsqueeze(-1), rows[REDRAWS]], -1)  # [D, K, M]
+    outcomes = all_draws(rows)  # [D, K, M]
     chance = outcomes.float().mean(-1)
     rows = rows.clone(False).set(SOFT_SUCCESS, chance)
     clean = torch.zeros(chance.shape)
