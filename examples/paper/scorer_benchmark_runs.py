@@ -1,0 +1,145 @@
+"""Scorer-benchmark files for many runs: each run's five stages in one command, resumable.
+
+    python examples/paper/scorer_benchmark_runs.py tasks=[stick-pull,disassemble] seeds=[0] policy=fm
+    python examples/paper/scorer_benchmark_runs.py tasks=[pick-place-wall] policy=dp episodes=30 jobs=1
+
+For every ``(task, seed)``, one after another, each its own process with ``threads`` torch threads (``jobs``
+runs side by side):
+
+1. the base policy (``examples/train_dp3_wm.py ... until=policy``);
+2. its first decision branched on ``episodes`` data seeds, ``num_candidates`` point-dropout candidates each
+   (``branched_ranking.py``);
+3. every decision's candidates continued under ``draws`` further noise draws, with the honest ceiling
+   (``outcome_noise.py``: ``docs/results/honest_ceiling_<run>.json``);
+4. the benchmark file ``benchmarks/scorer/<run>.pt``; 5. its distillation file ``benchmarks/scorer/distill/<run>.pt``.
+
+A stage whose artifact exists is skipped, so a stopped command resumes where it was (branching resumes
+within its episodes, too). Each run's output goes to ``<out>/logs/<run>.log``; exit codes and wall times per
+stage to ``<out>/scorer_benchmark_runs.json``. Then ``python examples/paper/scorer_benchmark.py`` measures
+the ladder on every file. About 70 min of one CPU thread per FM run of 100 episodes (the redraws are
+two thirds of it).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from torchrl_dalir.config import check_at_least, check_choice, config_dict, parse_config
+from torchrl_dalir.envs.tasks import TASKS
+from torchrl_dalir.utils import atomic_write, run_logged
+
+ROOT = Path(__file__).resolve().parents[2]
+PAPER = ROOT / "examples" / "paper"
+
+
+@dataclass
+class Config:
+    tasks: list[str] = field(default_factory=lambda: ["stick-pull", "disassemble"])
+    seeds: list[int] = field(default_factory=lambda: [0])
+    policy: str = "fm"  # fm | dp
+    episodes: int = 100  # branched first decisions (data seeds 500000, ...)
+    num_candidates: int = 8
+    draws: list[int] = field(default_factory=lambda: [1, 2, 3])  # further noise draws (M = 1 + len(draws))
+    states: int = 1000  # distillation states (data seeds 600000, ...)
+    out: str = "outputs/scorer_benchmark"  # policies, branched folders and logs
+    results: str = str(ROOT)  # where docs/results/ and benchmarks/scorer/ are written
+    jobs: int = 2
+    threads: int = 1
+
+    def __post_init__(self):
+        check_choice("policy", self.policy, ("fm", "dp"))
+        for name, minimum in (("episodes", 1), ("num_candidates", 2), ("states", 1), ("jobs", 1), ("threads", 1)):
+            check_at_least(name, getattr(self, name), minimum)
+        for task in self.tasks:
+            check_choice("task", task, tuple(TASKS))
+        if not self.draws:
+            raise ValueError(
+                "draws= needs at least one further noise draw: the honest ceiling is cross-fitted over draws"
+            )
+
+
+def run_name(cfg: Config, task: str, seed: int) -> str:
+    return f"{cfg.policy}_{task.replace('-', '_')}_s{seed}"
+
+
+def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Path, list[str]]]:
+    """The run's stages in order: ``(name, artifact, command)``; a stage is done when its artifact exists."""
+    out, results, run = Path(cfg.out), Path(cfg.results), run_name(cfg, task, seed)
+    policy = out / "policies" / task / f"{cfg.policy}_seed{seed}" / "checkpoint.pt"
+    branched = out / "branched" / task / policy.parent.name / "dropout"
+    redraws = results / "docs" / "results" / f"honest_ceiling_{run}.json"
+    benchmark = results / "benchmarks" / "scorer" / f"{run}.pt"
+    distillation = benchmark.parent / "distill" / f"{run}.pt"
+    python = [sys.executable]
+    return [
+        (
+            "policy",
+            policy,
+            [*python, str(ROOT / "examples" / "train_dp3_wm.py"), f"task={task}", f"seed={seed}",
+             f"policy={cfg.policy}", "until=policy", f"out={out}"],
+        ),
+        (
+            "branching",
+            branched / "rows",
+            [*python, str(PAPER / "branched_ranking.py"), f"policy={policy}", f"episodes={cfg.episodes}",
+             "stride=1", "decisions=1", f"num_candidates={cfg.num_candidates}", "variants=[]",
+             f"out={out / 'branched'}"],
+        ),
+        (
+            "redraws",
+            redraws,
+            [*python, str(PAPER / "outcome_noise.py"), f"policy={policy}", f"branched={branched}",
+             f"draws=[{','.join(map(str, cfg.draws))}]", "only_split=false", f"json={redraws}"],
+        ),
+        (
+            "benchmark",
+            benchmark,
+            [*python, str(PAPER / "scorer_benchmark.py"), f"build={benchmark}", f"policy={policy}",
+             f"branched={branched}", f"redraws={redraws}"],
+        ),
+        (
+            "distillation",
+            distillation,
+            [*python, str(PAPER / "scorer_benchmark.py"), f"distill={distillation}", f"policy={policy}",
+             f"states={cfg.states}", "seed=600000", f"num_candidates={cfg.num_candidates}"],
+        ),
+    ]  # fmt: skip
+
+
+def run_one(cfg: Config, task: str, seed: int) -> dict:
+    """The run's stages that are not done yet, in order; stops at the first that fails."""
+    run = run_name(cfg, task, seed)
+    log = Path(cfg.out) / "logs" / f"{run}.log"
+    record = {"run": run, "task": task, "seed": seed, "policy": cfg.policy, "log": str(log), "stages": {}}
+    for name, artifact, command in stages(cfg, task, seed):
+        if artifact.exists():
+            record["stages"][name] = "done before"
+            continue
+        code, seconds = run_logged(command, log, cfg.threads)
+        record["stages"][name] = {"exit_code": code, "seconds": round(seconds, 1)}
+        print(f"[{run}] {name}: {'ok' if code == 0 else f'FAILED (exit {code}), see {log}'} in {seconds / 60:.1f} min")
+        if code != 0 or not artifact.exists():
+            record["failed"] = name
+            break
+    return record
+
+
+def main(argv: list[str]) -> list[dict]:
+    cfg = parse_config(Config, argv)
+    runs = [(task, seed) for seed in cfg.seeds for task in cfg.tasks]
+    with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
+        records = list(pool.map(lambda run: run_one(cfg, *run), runs))
+    summary = Path(cfg.out) / "scorer_benchmark_runs.json"
+    atomic_write(summary, json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))
+    failed = [r for r in records if "failed" in r]
+    if failed:
+        raise SystemExit(f"{len(failed)} of {len(records)} runs failed: {[r['log'] for r in failed]}")
+    return records
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
