@@ -1,13 +1,36 @@
-"""examples/paper/scorer_benchmark_runs.py: each run's five stages in order, done stages skipped, a failure stops
-the run and not the others (every stage's process is stubbed: the real ones take an hour)."""
+"""examples/paper/scorer_benchmark_runs.py: each run's five stages in order, every command accepted by its
+script's own configuration, done stages skipped, a failure stops its run and not the others (every stage's
+process is stubbed: the real ones take an hour)."""
 
 import json
 import pathlib
 import runpy
 
 import pytest
+import torch
 
-SCRIPT = pathlib.Path(__file__).parents[1] / "examples" / "paper" / "scorer_benchmark_runs.py"
+from torchrl_dalir.config import parse_config
+from torchrl_dalir.pipeline import PRESETS, PipelineConfig
+
+EXAMPLES = pathlib.Path(__file__).parents[1] / "examples"
+SCRIPT = EXAMPLES / "paper" / "scorer_benchmark_runs.py"
+STAGES = ["policy", "branching", "redraws", "benchmark", "distillation"]
+
+
+def _stage(command: list[str]) -> tuple[str, pathlib.Path]:
+    """The stage ``command`` runs, parsed by its script's ``Config``, and where that script writes its artifact."""
+    script, argv = pathlib.Path(command[1]), command[2:]
+    if script.name == "train_dp3_wm.py":
+        cfg = parse_config(PipelineConfig, argv, PRESETS)
+        return "policy", cfg.policy_training.run_dir() / "checkpoint.pt"
+    cfg = parse_config(runpy.run_path(str(script))["Config"], argv)
+    if script.name == "branched_ranking.py":  # collect_branched's folder: <out>/<task>/<policy's run>/<generator>
+        policy = pathlib.Path(cfg.policy)
+        return "branching", pathlib.Path(cfg.out) / policy.parents[1].name / policy.parent.name / cfg.generator
+    if script.name == "outcome_noise.py":
+        assert (cfg.draws, cfg.only_split) == ([1, 2, 3], False)  # the honest ceiling's redraws
+        return "redraws", pathlib.Path(cfg.json)
+    return ("benchmark", pathlib.Path(cfg.build)) if cfg.build else ("distillation", pathlib.Path(cfg.distill))
 
 
 @pytest.fixture
@@ -16,22 +39,19 @@ def script(monkeypatch):
     calls = []
 
     def fake_run_logged(command, log, threads):
-        """A stage's process: writes the artifact its command names, except the stick-pull redraws, which fail."""
-        calls.append(command)
-        stage = {"build=": "benchmark", "distill=": "distillation", "json=": "redraws"}
-        artifact = next((a.split("=", 1)[1] for a in command for k in stage if a.startswith(k)), None)
-        if "outcome_noise.py" in command[1] and "stick-pull" in " ".join(command):
+        """A stage's process: writes its artifact, except the stick-pull redraws, which fail."""
+        stage, artifact = _stage(command)
+        calls.append(stage)
+        if stage == "redraws" and "stick_pull" in artifact.name:
             return 1, 0.5
-        if "train_dp3_wm.py" in command[1]:
-            out = next(a[4:] for a in command if a.startswith("out="))
-            task = next(a[5:] for a in command if a.startswith("task="))
-            artifact = f"{out}/policies/{task}/fm_seed0/checkpoint.pt"
-        if "branched_ranking.py" in command[1]:
-            policy = pathlib.Path(next(a[7:] for a in command if a.startswith("policy=")))
-            out = next(a[4:] for a in command if a.startswith("out="))
-            artifact = f"{out}/{policy.parent.parent.name}/{policy.parent.name}/dropout/rows"
-        pathlib.Path(artifact).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(artifact).touch()
+        artifact.parent.mkdir(parents=True, exist_ok=True)
+        if stage == "policy":
+            torch.save({"step": 10, "num_steps": 10}, artifact)
+        elif stage == "branching":
+            artifact.mkdir()
+            (artifact / "meta.json").write_text(json.dumps({"complete": True}))
+        else:
+            artifact.touch()
         return 0, 1.0
 
     monkeypatch.setitem(module["run_one"].__globals__, "run_logged", fake_run_logged)
@@ -40,25 +60,35 @@ def script(monkeypatch):
 
 def test_the_stages_run_in_order_resume_and_stop_at_a_failure(script, tmp_path):
     module, calls = script
-    argv = [f"out={tmp_path / 'out'}", f"results={tmp_path}", "tasks=[disassemble,stick-pull]", "jobs=1"]
+    argv = [f"out={tmp_path}", "tasks=[disassemble,stick-pull]", "jobs=1"]
     with pytest.raises(SystemExit, match="1 of 2 runs failed"):
         module["main"](argv)
-    scripts = [pathlib.Path(c[1]).name for c in calls]
-    chain = ["train_dp3_wm.py", "branched_ranking.py", "outcome_noise.py", "scorer_benchmark.py", "scorer_benchmark.py"]
-    assert scripts == chain + chain[:3]  # stick-pull stops at its failed redraws
+    assert calls == STAGES + STAGES[:3]  # stick-pull stops at its failed redraws
     assert (tmp_path / "benchmarks" / "scorer" / "distill" / "fm_disassemble_s0.pt").exists()
-    assert "draws=[1,2,3]" in calls[2] and "only_split=false" in calls[2]
-    summary = json.loads((tmp_path / "out" / "scorer_benchmark_runs.json").read_text())
+    summary = json.loads((tmp_path / "scorer_benchmark_runs.json").read_text())
     assert [r.get("failed") for r in summary["runs"]] == [None, "redraws"]
 
     calls.clear()  # resumed: only what was not done runs again
     with pytest.raises(SystemExit):
         module["main"](argv)
-    assert [pathlib.Path(c[1]).name for c in calls] == ["outcome_noise.py"]
-    summary = json.loads((tmp_path / "out" / "scorer_benchmark_runs.json").read_text())
-    assert summary["runs"][0]["stages"] == dict.fromkeys(
-        ["policy", "branching", "redraws", "benchmark", "distillation"], "done before"
+    assert calls == ["redraws"]
+    summary = json.loads((tmp_path / "scorer_benchmark_runs.json").read_text())
+    assert summary["runs"][0]["stages"] == dict.fromkeys(STAGES, "done before")
+
+
+def test_an_interrupted_policy_or_branching_is_not_done(script, tmp_path):
+    """A checkpoint short of its last step, or branched rows without a complete meta.json, run again."""
+    module, calls = script
+    argv = [f"out={tmp_path}", "tasks=[disassemble]"]
+    module["main"](argv)
+    ((_, policy_done, _), (_, branching_done, _), *_) = module["stages"](
+        module["Config"](out=str(tmp_path)), "disassemble", 0
     )
+    policy = tmp_path / "policies" / "disassemble" / "fm_seed0" / "checkpoint.pt"
+    torch.save({"step": 5, "num_steps": 10}, policy)
+    meta = tmp_path / "branched" / "disassemble" / "fm_seed0" / "dropout" / "meta.json"
+    meta.write_text(json.dumps({"complete": False}))
+    assert not policy_done() and not branching_done()
 
 
 def test_an_unknown_task_or_backbone_and_a_single_candidate_are_refused(script):

@@ -3,8 +3,8 @@
     python examples/paper/scorer_benchmark_runs.py tasks=[stick-pull,disassemble] seeds=[0] policy=fm
     python examples/paper/scorer_benchmark_runs.py tasks=[pick-place-wall] policy=dp episodes=30 jobs=1
 
-For every ``(task, seed)``, one after another, each its own process with ``threads`` torch threads (``jobs``
-runs side by side):
+For every ``(task, seed)``, stage after stage, each its own process with ``threads`` torch threads (``jobs``
+tasks side by side, each task's seeds in turn):
 
 1. the base policy (``examples/train_dp3_wm.py ... until=policy``);
 2. its first decision branched on ``episodes`` data seeds, ``num_candidates`` point-dropout candidates each
@@ -13,9 +13,11 @@ runs side by side):
    (``outcome_noise.py``: ``docs/results/honest_ceiling_<run>.json``);
 4. the benchmark file ``benchmarks/scorer/<run>.pt``; 5. its distillation file ``benchmarks/scorer/distill/<run>.pt``.
 
-A stage whose artifact exists is skipped, so a stopped command resumes where it was (branching resumes
-within its episodes, too). Each run's output goes to ``<out>/logs/<run>.log``; exit codes and wall times per
-stage to ``<out>/scorer_benchmark_runs.json``. Then ``python examples/paper/scorer_benchmark.py`` measures
+A stage whose artifact is whole is skipped, so a stopped command resumes where it was (branching resumes
+within its episodes, too). The files go to ``<results>/docs/results/`` and ``<results>/benchmarks/scorer/``
+(default ``results=out``; ``results=.`` adds them to this checkout, where a run whose files are committed counts
+as done, whatever policy ``out`` holds). Each run's output goes to ``<out>/logs/<run>.log``; exit codes and wall
+times per stage to ``<out>/scorer_benchmark_runs.json``. Then ``python examples/paper/scorer_benchmark.py`` measures
 the ladder on every file. About 70 min of one CPU thread per FM run of 100 episodes (the redraws are
 two thirds of it).
 """
@@ -24,10 +26,12 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_dalir.checkpoints.files import training_finished
 from torchrl_dalir.config import check_at_least, check_choice, config_dict, parse_config
 from torchrl_dalir.envs.tasks import TASKS
 from torchrl_dalir.utils import atomic_write, run_logged
@@ -46,7 +50,7 @@ class Config:
     draws: list[int] = field(default_factory=lambda: [1, 2, 3])  # further noise draws (M = 1 + len(draws))
     states: int = 1000  # distillation states (data seeds 600000, ...)
     out: str = "outputs/scorer_benchmark"  # policies, branched folders and logs
-    results: str = str(ROOT)  # where docs/results/ and benchmarks/scorer/ are written
+    results: str = ""  # where docs/results/ and benchmarks/scorer/ go ("": under out; "." adds them to this checkout)
     jobs: int = 2
     threads: int = 1
 
@@ -66,9 +70,16 @@ def run_name(cfg: Config, task: str, seed: int) -> str:
     return f"{cfg.policy}_{task.replace('-', '_')}_s{seed}"
 
 
-def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Path, list[str]]]:
-    """The run's stages in order: ``(name, artifact, command)``; a stage is done when its artifact exists."""
-    out, results, run = Path(cfg.out), Path(cfg.results), run_name(cfg, task, seed)
+def _branched_complete(folder: Path) -> bool:
+    meta = folder / "meta.json"
+    return meta.exists() and json.loads(meta.read_text()).get("complete", False)
+
+
+def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Callable[[], bool], list[str]]]:
+    """The run's stages in order: ``(name, done, command)``. A stage is done when its artifact is whole: the
+    policy's last training step, a complete branched collection, a file (each written atomically)."""
+    out, run = Path(cfg.out), run_name(cfg, task, seed)
+    results = Path(cfg.results or out)
     policy = out / "policies" / task / f"{cfg.policy}_seed{seed}" / "checkpoint.pt"
     branched = out / "branched" / task / policy.parent.name / "dropout"
     redraws = results / "docs" / "results" / f"honest_ceiling_{run}.json"
@@ -78,32 +89,32 @@ def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Path, list[str]
     return [
         (
             "policy",
-            policy,
+            lambda: training_finished(policy),
             [*python, str(ROOT / "examples" / "train_dp3_wm.py"), f"task={task}", f"seed={seed}",
              f"policy={cfg.policy}", "until=policy", f"out={out}"],
         ),
         (
             "branching",
-            branched / "rows",
+            lambda: _branched_complete(branched),
             [*python, str(PAPER / "branched_ranking.py"), f"policy={policy}", f"episodes={cfg.episodes}",
              "stride=1", "decisions=1", f"num_candidates={cfg.num_candidates}", "variants=[]",
              f"out={out / 'branched'}"],
         ),
         (
             "redraws",
-            redraws,
+            redraws.exists,
             [*python, str(PAPER / "outcome_noise.py"), f"policy={policy}", f"branched={branched}",
              f"draws=[{','.join(map(str, cfg.draws))}]", "only_split=false", f"json={redraws}"],
         ),
         (
             "benchmark",
-            benchmark,
+            benchmark.exists,
             [*python, str(PAPER / "scorer_benchmark.py"), f"build={benchmark}", f"policy={policy}",
              f"branched={branched}", f"redraws={redraws}"],
         ),
         (
             "distillation",
-            distillation,
+            distillation.exists,
             [*python, str(PAPER / "scorer_benchmark.py"), f"distill={distillation}", f"policy={policy}",
              f"states={cfg.states}", "seed=600000", f"num_candidates={cfg.num_candidates}"],
         ),
@@ -115,14 +126,14 @@ def run_one(cfg: Config, task: str, seed: int) -> dict:
     run = run_name(cfg, task, seed)
     log = Path(cfg.out) / "logs" / f"{run}.log"
     record = {"run": run, "task": task, "seed": seed, "policy": cfg.policy, "log": str(log), "stages": {}}
-    for name, artifact, command in stages(cfg, task, seed):
-        if artifact.exists():
+    for name, done, command in stages(cfg, task, seed):
+        if done():
             record["stages"][name] = "done before"
             continue
         code, seconds = run_logged(command, log, cfg.threads)
         record["stages"][name] = {"exit_code": code, "seconds": round(seconds, 1)}
         print(f"[{run}] {name}: {'ok' if code == 0 else f'FAILED (exit {code}), see {log}'} in {seconds / 60:.1f} min")
-        if code != 0 or not artifact.exists():
+        if code != 0 or not done():
             record["failed"] = name
             break
     return record
@@ -130,9 +141,10 @@ def run_one(cfg: Config, task: str, seed: int) -> dict:
 
 def main(argv: list[str]) -> list[dict]:
     cfg = parse_config(Config, argv)
-    runs = [(task, seed) for seed in cfg.seeds for task in cfg.tasks]
+    # one worker per task runs its seeds in turn: two runs of a task at once would collect into one demos folder
     with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
-        records = list(pool.map(lambda run: run_one(cfg, *run), runs))
+        per_task = pool.map(lambda task: [run_one(cfg, task, seed) for seed in cfg.seeds], cfg.tasks)
+        records = [record for records in per_task for record in records]
     summary = Path(cfg.out) / "scorer_benchmark_runs.json"
     atomic_write(summary, json.dumps({"config": config_dict(cfg), "runs": records}, indent=1))
     failed = [r for r in records if "failed" in r]
