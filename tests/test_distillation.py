@@ -139,7 +139,7 @@ def test_the_actor_reranks_by_the_student_and_its_checkpoint_reloads_identical(t
     assert all(torch.equal(a, b) for a, b in zip(loaded.state_dict().values(), critic.state_dict().values()))
 
 
-def test_a_distillation_file_keeps_one_frame_of_the_history_and_reloads_the_states(tmp_path):
+def test_a_distillation_file_keeps_one_frame_of_a_first_decision_and_reloads_the_states(tmp_path):
     from torchrl_dalir.branching.scorer_benchmark import distillation_contents, load_distillation, save_benchmark
 
     policy = untrained_reach_policy()
@@ -157,9 +157,13 @@ def test_a_distillation_file_keeps_one_frame_of_the_history_and_reloads_the_stat
     assert torch.equal(loaded["agent_pos"], states["agent_pos"])
     assert torch.equal(loaded["action_chunk"], states["action_chunk"].half().float())  # float16 candidates
     assert info["task"] == "reach" and set(info["encoders"]["weights"]) == set(ENCODER_PARTS)
-    states["agent_pos"][0, 1] += 1  # a later decision: its history is not one frame
-    with pytest.raises(ValueError, match="first decisions"):
-        distillation_contents(policy, states)
+    states["agent_pos"][0, 1] += 1  # a later decision: its history is not one frame, and is kept whole
+    contents = distillation_contents(policy, states)
+    assert contents["rows"]["point_cloud"].shape[1] == 2 and contents["rows"]["agent_pos"].shape[1] == 2
+    save_benchmark(tmp_path / "later.pt", contents)
+    loaded, _ = load_distillation(tmp_path / "later.pt")
+    assert torch.equal(loaded["agent_pos"], states["agent_pos"])
+    assert torch.equal(loaded["point_cloud"], states["point_cloud"].float())
 
 
 def test_the_critic_screen_screens_a_student_distilled_on_a_benchmark(trained_policy, tmp_path):
@@ -194,3 +198,39 @@ def test_the_critic_screen_screens_a_student_distilled_on_a_benchmark(trained_po
     assert [r["reset_seed"] for r in base] == [r["reset_seed"] for r in student]
     critic = load_chunk_critic(tmp_path / "screen" / policy.task / Path(checkpoint).parent.name / "critic.pt")
     assert type(critic) is PointCloudCritic
+
+
+def test_distillation_states_of_later_decisions_are_the_replayed_base_episode(trained_policy):
+    from torchrl_dalir.branching.outcome_noise import decision_state
+    from torchrl_dalir.branching.scorer_benchmark import distillation_states
+    from torchrl_dalir.branching.simulator import candidate_chunks, observation_history
+    from torchrl_dalir.checkpoints import load_policy
+    from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
+    from torchrl_dalir.envs.tasks import get_task
+    from torchrl_dalir.reranking import RerankingConfig
+    from torchrl_dalir.reranking.candidates import candidate_generator
+
+    policy = load_policy(trained_policy[1])
+    reranking = RerankingConfig(num_candidates=3)
+    generator = candidate_generator(reranking)
+    first = distillation_states(policy, 600_000, 2, reranking, progress=False)
+    later = distillation_states(policy, 600_000, 2, reranking, progress=False, decisions=3)
+    assert (
+        later["decision"].tolist() == [0, 1, 2, 0, 1, 2]
+        and later["reset_seed"].tolist() == [600_000] * 3 + [600_001] * 3
+    )
+    assert (later[later["decision"] == 0] == first).all()  # decisions=1 is the first-decision file's rows
+    assert not torch.equal(later["agent_pos"][1], later["agent_pos"][0])  # the robot has moved
+    spec = get_task(policy.task)
+    env = PointCloudObservation(
+        make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps, history=policy.obs_steps
+    )
+    for row in later[later["decision"] > 0]:
+        _, observations = decision_state(env, policy, int(row["reset_seed"]), int(row["decision"]), "cpu")
+        cloud, agent_pos = observation_history(policy, observations, "cpu")
+        assert torch.equal(cloud[0].half(), row["point_cloud"]) and torch.equal(agent_pos[0], row["agent_pos"])
+        assert torch.equal(torch.as_tensor(observations[-1]["privileged_state"]), row["privileged_state"])
+        chunks = candidate_chunks(policy, generator, observations, 3, int(row["reset_seed"]), int(row["decision"]),
+                                  reranking.candidates, "cpu")  # fmt: skip
+        assert torch.equal(chunks, row["action_chunk"])  # the candidates of that decision's own noise streams
+    env.close()

@@ -99,3 +99,17 @@ def test_an_unknown_task_or_backbone_and_a_single_candidate_are_refused(script):
         module["main"](["policy=ppo"])
     with pytest.raises(ValueError, match="num_candidates must be at least 2, got 1"):
         module["main"](["num_candidates=1"])
+
+
+def test_later_decisions_are_branched_and_distilled_into_files_of_their_own(script, tmp_path):
+    module, calls = script
+    module["main"]([f"out={tmp_path}", "tasks=[disassemble]", "decisions=4"])
+    assert calls == STAGES
+    assert (tmp_path / "benchmarks" / "scorer" / "distill" / "fm_disassemble_s0_d4.pt").exists()
+    assert (tmp_path / "branched_d4" / "disassemble" / "fm_seed0" / "dropout" / "meta.json").exists()
+    assert not (tmp_path / "benchmarks" / "scorer" / "fm_disassemble_s0.pt").exists()  # the first decision's name
+    commands = dict((name, command) for name, _, command in module["stages"](
+        module["Config"](out=str(tmp_path), decisions=4), "disassemble", 0))  # fmt: skip
+    for stage in ("branching", "distillation"):
+        script_config = runpy.run_path(commands[stage][1])["Config"]
+        assert parse_config(script_config, commands[stage][2:]).decisions == 4

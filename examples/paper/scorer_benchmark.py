@@ -6,7 +6,8 @@
     # a benchmark file from a policy's branched first decisions and their redraws (needs the simulator once)
     python examples/paper/scorer_benchmark.py build=benchmarks/scorer/fm_pick_place_wall_s0.pt \\
         policy=<run>/checkpoint.pt branched=<collect_branched folder> redraws=<outcome_noise.py json>
-    # its distillation file: first decisions of fresh data seeds with the policy's candidates (no continuation)
+    # its distillation file: first decisions of fresh data seeds with the policy's candidates (no continuation;
+    # decisions=4: each episode's first 4, for a benchmark branched at as many)
     python examples/paper/scorer_benchmark.py distill=benchmarks/scorer/distill/fm_pick_place_wall_s0.pt \\
         policy=<run>/checkpoint.pt states=1000 seed=600000
 
@@ -39,7 +40,7 @@ from torchrl_dalir.branching.scorer_benchmark import (
     scorer_ladder,
 )
 from torchrl_dalir.checkpoints import load_policy
-from torchrl_dalir.config import parse_config
+from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.reranking.config import RerankingConfig
 from torchrl_dalir.training.distillation import DistillationConfig
 from torchrl_dalir.training.ranking import RankingTrainingConfig
@@ -68,9 +69,10 @@ class Config:
     # or a distillation file (the path to write), from policy= (the benchmark's, or one retrained by the same
     # command: the ladder records both digests) and:
     distill: str | None = None
-    states: int = 1000  # first decisions of data seeds seed, seed + 1, ... (none shared with the benchmark's)
+    states: int = 1000  # base-policy episodes of data seeds seed, seed + 1, ... (none shared with the benchmark's)
     seed: int = 600_000
     num_candidates: int = 8  # as many as the benchmark's decisions hold
+    decisions: int = 1  # each episode's first decisions (the benchmark's branched decisions=)
 
     def __post_init__(self):
         unknown = set(self.scorers) - set(SCORERS)
@@ -78,6 +80,7 @@ class Config:
             raise ValueError(f"unknown scorers {sorted(unknown)}; the scorers are {list(SCORERS)}")
         if self.build and not (self.policy and self.branched and self.redraws):
             raise ValueError("build= needs policy=, branched= and redraws= (outcome_noise.py only_split=false json)")
+        check_at_least("decisions", self.decisions, 1)
         if self.distill and not self.policy:
             raise ValueError("distill= needs policy= (the benchmark's policy checkpoint)")
 
@@ -106,11 +109,12 @@ def build(cfg: Config) -> dict:
 
 
 def build_distillation(cfg: Config) -> dict:
-    """Writes one distillation file: fresh first decisions with the policy's candidates, and its encoders."""
+    """Writes one distillation file: fresh decisions with the policy's candidates, and its encoders."""
     policy = load_policy(cfg.policy)
-    states = distillation_states(policy, cfg.seed, cfg.states, RerankingConfig(num_candidates=cfg.num_candidates))
+    reranking = RerankingConfig(num_candidates=cfg.num_candidates)
+    states = distillation_states(policy, cfg.seed, cfg.states, reranking, decisions=cfg.decisions)
     contents = distillation_contents(policy, states)
-    contents["source"] = {"policy": cfg.policy, "seed": cfg.seed}
+    contents["source"] = {"policy": cfg.policy, "seed": cfg.seed, "decisions": cfg.decisions}
     save_benchmark(cfg.distill, contents)
     print(f"{cfg.distill}: {len(states)} decision states x {cfg.num_candidates} candidates")
     return contents

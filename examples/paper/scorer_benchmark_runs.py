@@ -7,8 +7,8 @@ For every ``(task, seed)``, stage after stage, each its own process with ``threa
 tasks side by side, each task's seeds in turn):
 
 1. the base policy (``examples/train_dp3_wm.py ... until=policy``);
-2. its first decision branched on ``episodes`` data seeds, ``num_candidates`` point-dropout candidates each
-   (``branched_ranking.py``);
+2. the first ``decisions`` decisions (default 1) of ``episodes`` data seeds branched, ``num_candidates``
+   point-dropout candidates each (``branched_ranking.py``);
 3. every decision's candidates continued under ``draws`` further noise draws, with the honest ceiling
    (``outcome_noise.py``: ``docs/results/honest_ceiling_<run>.json``);
 4. the benchmark file ``benchmarks/scorer/<run>.pt``; 5. its distillation file ``benchmarks/scorer/distill/<run>.pt``.
@@ -45,7 +45,8 @@ class Config:
     tasks: list[str] = field(default_factory=lambda: ["stick-pull", "disassemble"])
     seeds: list[int] = field(default_factory=lambda: [0])
     policy: str = "fm"  # fm | dp
-    episodes: int = 100  # branched first decisions (data seeds 500000, ...)
+    episodes: int = 100  # branched episodes (data seeds 500000, ...)
+    decisions: int = 1  # each episode's first decisions, branched and distilled (> 1: runs named <run>_d<decisions>)
     num_candidates: int = 8
     draws: list[int] = field(default_factory=lambda: [1, 2, 3])  # further noise draws (M = 1 + len(draws))
     states: int = 1000  # distillation states (data seeds 600000, ...)
@@ -56,7 +57,9 @@ class Config:
 
     def __post_init__(self):
         check_choice("policy", self.policy, ("fm", "dp"))
-        for name, minimum in (("episodes", 1), ("num_candidates", 2), ("states", 1), ("jobs", 1), ("threads", 1)):
+        for name, minimum in (
+            ("episodes", 1), ("decisions", 1), ("num_candidates", 2), ("states", 1), ("jobs", 1), ("threads", 1)
+        ):  # fmt: skip
             check_at_least(name, getattr(self, name), minimum)
         for task in self.tasks:
             check_choice("task", task, tuple(TASKS))
@@ -67,7 +70,7 @@ class Config:
 
 
 def run_name(cfg: Config, task: str, seed: int) -> str:
-    return f"{cfg.policy}_{task.replace('-', '_')}_s{seed}"
+    return f"{cfg.policy}_{task.replace('-', '_')}_s{seed}" + (f"_d{cfg.decisions}" if cfg.decisions > 1 else "")
 
 
 def _branched_complete(folder: Path) -> bool:
@@ -81,7 +84,8 @@ def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Callable[[], bo
     out, run = Path(cfg.out), run_name(cfg, task, seed)
     results = Path(cfg.results or out)
     policy = out / "policies" / task / f"{cfg.policy}_seed{seed}" / "checkpoint.pt"
-    branched = out / "branched" / task / policy.parent.name / "dropout"
+    branched_out = out / ("branched" if cfg.decisions == 1 else f"branched_d{cfg.decisions}")
+    branched = branched_out / task / policy.parent.name / "dropout"
     redraws = results / "docs" / "results" / f"honest_ceiling_{run}.json"
     benchmark = results / "benchmarks" / "scorer" / f"{run}.pt"
     distillation = benchmark.parent / "distill" / f"{run}.pt"
@@ -97,8 +101,8 @@ def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Callable[[], bo
             "branching",
             lambda: _branched_complete(branched),
             [*python, str(PAPER / "branched_ranking.py"), f"policy={policy}", f"episodes={cfg.episodes}",
-             "stride=1", "decisions=1", f"num_candidates={cfg.num_candidates}", "variants=[]",
-             f"out={out / 'branched'}"],
+             "stride=1", f"decisions={cfg.decisions}", f"num_candidates={cfg.num_candidates}", "variants=[]",
+             f"out={branched_out}"],
         ),
         (
             "redraws",
@@ -116,7 +120,8 @@ def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Callable[[], bo
             "distillation",
             distillation.exists,
             [*python, str(PAPER / "scorer_benchmark.py"), f"distill={distillation}", f"policy={policy}",
-             f"states={cfg.states}", "seed=600000", f"num_candidates={cfg.num_candidates}"],
+             f"states={cfg.states}", "seed=600000", f"num_candidates={cfg.num_candidates}",
+             f"decisions={cfg.decisions}"],
         ),
     ]  # fmt: skip
 

@@ -21,9 +21,8 @@ from torchrl_dalir import keys
 from torchrl_dalir.branching.candidate_outcomes import within_decision_auc
 from torchrl_dalir.branching.outcomes import DECISION, RESET_SEED, SUCCESS, BranchedOutcomes
 from torchrl_dalir.branching.simulator import (
-    base_actions,
+    base_decisions,
     branch,
-    execute_actions,
     executed_actions,
     observation_history,
 )
@@ -44,14 +43,10 @@ def noise_seed(reset_seed: int, draw: int) -> int:
 def decision_state(env: PointCloudObservation, policy, reset_seed: int, decision: int, device) -> tuple:
     """The simulator state and the observations at ``decision`` of the base episode reset with ``reset_seed``
     (the base policy's own chunks before it, as in :func:`~torchrl_dalir.branching.simulator.base_episode`)."""
-    observation, _ = env.reset(seed=reset_seed)
-    observations = [observation]
-    for j in range(decision):
-        new, _, ended = execute_actions(env, base_actions(policy, observations, reset_seed, j, device))
-        if ended:
-            raise ValueError(f"the base episode of reset seed {reset_seed} ended before decision {decision}")
-        observations = observations + new
-    return env.get_state(), observations
+    reached = list(base_decisions(env, policy, reset_seed, decision + 1, device))
+    if len(reached) <= decision:
+        raise ValueError(f"the base episode of reset seed {reset_seed} ended before decision {decision}")
+    return env.get_state(), reached[-1]
 
 
 def replayed_decisions(policy, task: str, rows: TensorDict, desc: str, progress: bool, device) -> Iterator[tuple]:

@@ -41,7 +41,8 @@ from torchrl_dalir import keys
 from torchrl_dalir.branching.candidate_outcomes import within_decision_auc
 from torchrl_dalir.branching.outcome_noise import honest_ceiling, repeatability
 from torchrl_dalir.branching.outcomes import DECISION, RESET_SEED, SUCCESS
-from torchrl_dalir.branching.simulator import candidate_chunks, observation_history
+from torchrl_dalir.branching.simulator import base_decisions, candidate_chunks, observation_history
+from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.modules.point_cloud_critic import policy_encoders
@@ -101,15 +102,23 @@ def benchmark_rows(policy, rows: TensorDict, redraws: torch.Tensor, privileged_s
 
 @torch.no_grad()
 def distillation_states(
-    policy, seed: int, states: int, reranking: RerankingConfig | None = None, progress: bool = True, device="cpu"
+    policy,
+    seed: int,
+    states: int,
+    reranking: RerankingConfig | None = None,
+    progress: bool = True,
+    device="cpu",
+    decisions: int = 1,
 ) -> TensorDict:
-    """The first decision of ``states`` episodes of ``policy``'s task on data seeds ``seed, seed + 1, ...``: the
-    observation history, the simulator's privileged state and the candidates that ``reranking`` makes there (by
-    default 8 point-dropout candidates, candidate 0 the clean one, as in branching), without continuing any. A
-    teacher labels them; a student learns from the labels."""
+    """The first ``decisions`` decisions of ``states`` base-policy episodes of ``policy``'s task on data seeds
+    ``seed, seed + 1, ...`` (the base policy's own chunks between them, as in branching; an episode that ends
+    sooner gives fewer): the observation history, the simulator's privileged state and the candidates that
+    ``reranking`` makes there (by default 8 point-dropout candidates, candidate 0 the clean one), without
+    continuing any. A teacher labels them; a student learns from the labels."""
     reranking = reranking if reranking is not None else RerankingConfig(num_candidates=8)
     check_data_seed(seed)
     check_data_seed(seed + states - 1)
+    check_at_least("decisions", decisions, 1)
     spec, generator = get_task(policy.task), candidate_generator(reranking)
     env = PointCloudObservation(
         make_simulator(spec), spec, policy.num_points, decision_period=policy.action_steps, history=policy.obs_steps
@@ -119,35 +128,39 @@ def distillation_states(
         for reset_seed in tqdm(
             range(seed, seed + states), desc=f"distillation states {spec.name}", disable=not progress
         ):
-            observation, _ = env.reset(seed=reset_seed)
-            cloud, agent_pos = observation_history(policy, [observation], "cpu")
-            chunks = candidate_chunks(
-                policy, generator, [observation], reranking.num_candidates, reset_seed, 0, reranking.candidates, device
-            )
-            rows.append(
-                {
-                    keys.POINT_CLOUD: cloud[0].half(),
-                    keys.AGENT_POS: agent_pos[0],
-                    keys.PRIVILEGED_STATE: torch.as_tensor(observation[keys.PRIVILEGED_STATE], dtype=torch.float32),
-                    keys.ACTION_CHUNK: chunks.cpu(),
-                    RESET_SEED: torch.tensor(reset_seed),
-                }
-            )
+            for decision, observations in enumerate(base_decisions(env, policy, reset_seed, decisions, device)):
+                cloud, agent_pos = observation_history(policy, observations, "cpu")
+                chunks = candidate_chunks(
+                    policy, generator, observations, reranking.num_candidates, reset_seed, decision,
+                    reranking.candidates, device,
+                )  # fmt: skip
+                rows.append(
+                    {
+                        keys.POINT_CLOUD: cloud[0].half(),
+                        keys.AGENT_POS: agent_pos[0],
+                        keys.PRIVILEGED_STATE: torch.as_tensor(
+                            observations[-1][keys.PRIVILEGED_STATE], dtype=torch.float32
+                        ),
+                        keys.ACTION_CHUNK: chunks.cpu(),
+                        RESET_SEED: torch.tensor(reset_seed),
+                        DECISION: torch.tensor(decision),
+                    }
+                )
     finally:
         env.close()
     return torch.stack([TensorDict(row, []) for row in rows])
 
 
 def distillation_contents(policy, states: TensorDict) -> dict:
-    """A distillation file's contents: ``states`` (:func:`distillation_states`) and ``policy``'s encoders. A first
-    decision's history repeats its one observation, so one frame is kept (:func:`load_distillation` repeats it),
-    and the candidates are kept in float16: about 2.3 MiB per 500 states of 8 candidates."""
+    """A distillation file's contents: ``states`` (:func:`distillation_states`) and ``policy``'s encoders. When
+    every state is a first decision, whose history repeats its one observation, one frame is kept
+    (:func:`load_distillation` repeats it); the candidates are kept in float16: about 2.3 MiB per 500 first
+    decisions of 8 candidates."""
     history = states[keys.POINT_CLOUD].shape[1]
-    if not all((states[key] == states[key][:, :1]).all() for key in (keys.POINT_CLOUD, keys.AGENT_POS)):
-        raise ValueError("distillation states are first decisions, whose observation history repeats one frame")
     columns = states.to_dict()
-    for key in (keys.POINT_CLOUD, keys.AGENT_POS):
-        columns[key] = columns[key][:, :1].clone()  # a view would save the whole history
+    if all((states[key] == states[key][:, :1]).all() for key in (keys.POINT_CLOUD, keys.AGENT_POS)):
+        for key in (keys.POINT_CLOUD, keys.AGENT_POS):
+            columns[key] = columns[key][:, :1].clone()  # a view would save the whole history
     columns[keys.ACTION_CHUNK] = columns[keys.ACTION_CHUNK].half()
     return {
         "format": FORMAT,

@@ -11,7 +11,7 @@ the base episode itself from there on. Used by the candidates' ceiling
 from __future__ import annotations
 
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,6 +64,21 @@ def base_actions(policy, observations: list[dict], episode_seed: int, decision: 
     cloud, agent_pos = observation_history(policy, observations, device)
     noise = decision_noise(policy, episode_seed, decision).to(device)
     return executed_actions(policy, policy.sample(policy.encode(cloud, agent_pos), noise=noise)[0])
+
+
+def base_decisions(env: PointCloudObservation, policy, reset_seed: int, decisions: int, device) -> Iterator[list[dict]]:
+    """The observations up to each of the first ``decisions`` decisions of the base episode reset with
+    ``reset_seed`` (the base policy's own chunks between them); ``env`` is at that decision's state when each is
+    yielded. Fewer when the episode ends sooner."""
+    observation, _ = env.reset(seed=reset_seed)
+    observations = [observation]
+    for decision in range(decisions):
+        if decision:  # the base policy's chunk of the decision before
+            new, _, ended = execute_actions(env, base_actions(policy, observations, reset_seed, decision - 1, device))
+            if ended:
+                return
+            observations = observations + new
+        yield observations
 
 
 def continue_base(
