@@ -399,6 +399,8 @@ def test_honest_ceiling_picks_by_the_other_draws_and_cannot_pick_the_lucky_conti
     assert ceiling["clean"] == pytest.approx((0 + 1 / 3) / 2)
     assert ceiling["oracle"] == 1.0  # a winner in every draw of both decisions: the clairvoyant pick
     assert ceiling["honest_gain"] == pytest.approx(1 / 3) and ceiling["oracle_gain"] == pytest.approx(5 / 6)
+    # per decision: +1 and -1/3; their standard deviation 4 / (3 sqrt 2), over sqrt 2 decisions
+    assert ceiling["honest_gain_se"] == pytest.approx(2 / 3)
     # both split in every held-out draw: decision 0's winner has the best mean elsewhere (AUC 1), decision 1's
     # won nothing else (AUC 0)
     assert ceiling["true_chance_auc"] == 0.5

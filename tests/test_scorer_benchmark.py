@@ -86,7 +86,8 @@ def test_the_committed_benchmark_reproduces_its_numbers(scorer, one_thread):
     argv = [f"files=[{ROOT / 'benchmarks' / 'scorer' / name}.pt]", f"scorers=[{scorer}]", "student=false"]
     again = main(argv)["benchmarks"][name]
     expected = committed["benchmarks"][name]
-    assert again["honest_ceiling"] == expected["honest_ceiling"]  # counts: exact
+    # counts: exact (files committed before the standard error was recorded lack it)
+    assert {k: again["honest_ceiling"][k] for k in expected["honest_ceiling"]} == expected["honest_ceiling"]
     # a trained scorer: the same up to the last bits of another CPU's kernels, which can move a near tie
     assert again[scorer]["auc"] == pytest.approx(expected[scorer]["auc"], abs=0.02)
     assert again[scorer]["gain"] == pytest.approx(expected[scorer]["gain"], abs=0.02)

@@ -150,8 +150,8 @@ def honest_ceiling(success: torch.Tensor) -> dict:
     judged on draw ``m`` alone. Unlike the clairvoyant oracle (a winner of the draw that is judged), it cannot
     pick the lucky continuation. Returns, averaged over the held-out draws and all ``D`` decisions: the success
     rate of the clean candidate, a random candidate, the honest pick and the clairvoyant oracle, the honest gain
-    over the clean candidate, and the within-decision AUC of the other draws' mean as a score of the held-out
-    outcome (at the decisions that split in the held-out draw).
+    over the clean candidate with its standard error over decisions, and the within-decision AUC of the other
+    draws' mean as a score of the held-out outcome (at the decisions that split in the held-out draw).
 
     Example:
         >>> success = torch.tensor([[[0, 0, 0, 1], [1, 1, 1, 0]],    # candidate 1 wins 3 draws of 4
@@ -175,6 +175,8 @@ def honest_ceiling(success: torch.Tensor) -> dict:
         held_out += success[..., m].tolist()
     clean = float(success[:, 0].float().mean())
     honest = float(torch.stack(picked).mean())
+    gains = torch.stack(picked).mean(0) - success[:, 0].float().mean(-1)  # [D]: each decision's honest gain
+    se = float(gains.std() / len(gains) ** 0.5) if len(gains) > 1 else float("nan")
     return {
         "decisions": len(success),
         "candidates": success.shape[1],
@@ -184,6 +186,7 @@ def honest_ceiling(success: torch.Tensor) -> dict:
         "honest": honest,
         "oracle": float(success.any(1).float().mean()),
         "honest_gain": honest - clean,
+        "honest_gain_se": se,
         "oracle_gain": float(success.any(1).float().mean()) - clean,
         "true_chance_auc": within_decision_auc(chance_scores, held_out),
     }

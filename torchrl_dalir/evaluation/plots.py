@@ -148,7 +148,7 @@ def plot_metric_by_task(
     ax.set_ylabel(ylabel)
     if ylim is not None:
         ax.set_ylim(*ylim)
-    ax.legend(loc="upper right", fontsize=8)
+    ax.legend(loc="best", fontsize=8)
     ax.set_title(title)
     return _save(fig, path)
 

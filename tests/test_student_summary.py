@@ -1,0 +1,42 @@
+"""examples/paper/student_summary.py: the student's table is the committed result files' numbers, pooled per
+backbone, and a run whose screen failed has no test."""
+
+import json
+import pathlib
+import runpy
+import shutil
+
+import pytest
+
+RESULTS = pathlib.Path(__file__).parents[1] / "docs" / "results"
+SCRIPT = pathlib.Path(__file__).parents[1] / "examples" / "paper" / "student_summary.py"
+
+
+def test_the_summary_holds_the_committed_numbers_and_pools_them(tmp_path):
+    summary = runpy.run_path(str(SCRIPT))["main"]([f"out={tmp_path / 'summary'}"])
+    rows = {row["run"]: row for row in summary["runs"]}
+    stick_pull = rows["fm_stick_pull_s0"]
+    assert (stick_pull["task"], stick_pull["seed"], stick_pull["split_decisions"]) == ("stick-pull", 0, 29)
+    assert stick_pull["test"]["base"] == 0.08 and stick_pull["test"]["student"] == 0.26
+    assert (stick_pull["test"]["won"], stick_pull["test"]["lost"]) == (20, 2)
+    fm = [row["test"] for row in summary["runs"] if row["backbone"] == "fm" and row["test"]]
+    assert summary["pooled"]["fm"]["dalir_only"] == sum(t["won"] for t in fm)
+    assert summary["pooled"]["fm"]["base_only"] == sum(t["lost"] for t in fm)
+    assert (
+        "| fm_stick_pull_s0 | 29 | +5.2 ± 2.3 | 0.77 / +4.3 | 11 -> 22 % (15 / 4) | 8 -> 26 % (20 / 2"
+        in (tmp_path / "summary.md").read_text()
+    )
+    assert json.loads((tmp_path / "summary.json").read_text())["pooled"] == summary["pooled"]
+    assert (tmp_path / "summary.png").stat().st_size > 0
+
+
+def test_a_failed_screen_has_no_test_and_a_screen_needs_its_ladder(tmp_path):
+    for name in ("scorer_benchmark_fm_stick_pull_s0.json", "student_screen_fm_stick_pull_s0.json"):
+        shutil.copy(RESULTS / name, tmp_path / name)
+    main = runpy.run_path(str(SCRIPT))["main"]
+    summary = main([f"results={tmp_path}", f"out={tmp_path / 'summary'}"])
+    assert summary["runs"][0]["test"] is None and summary["pooled"] == {}
+    assert "not run (screen failed)" in (tmp_path / "summary.md").read_text()
+    (tmp_path / "scorer_benchmark_fm_stick_pull_s0.json").unlink()
+    with pytest.raises(FileNotFoundError, match="no ladder"):
+        main([f"results={tmp_path}", f"out={tmp_path / 'summary'}"])
