@@ -37,6 +37,7 @@ exclude_patterns = [
     ".DS_Store",
     "results/table*.md",
     "results/trusted_selection_screen.md",
+    "results/student_summary.md",
 ]
 
 # --- autodoc and napoleon: Google-style docstrings (Args, Returns, Example) ---
