@@ -12,6 +12,7 @@ from test_scorer_benchmark import SIZES, toy_benchmark
 
 from torchrl_dalir.branching.scorer_benchmark import scorer_ladder
 from torchrl_dalir.modules import PointCloudCritic, PointCloudCriticModule
+from torchrl_dalir.modules.config import executed_slice
 from torchrl_dalir.modules.point_cloud_critic import ENCODER_PARTS, policy_encoders
 from torchrl_dalir.objectives import CriticDistillationLoss
 from torchrl_dalir.training.distillation import DistillationConfig
@@ -113,6 +114,14 @@ def test_the_student_learns_from_the_cloud_what_only_the_teacher_reads():
     assert ladder["student"]["states"] == 200
     assert ladder["student"]["auc"] > 0.8  # the clouds show the state; the critic on a noise condition: ~0.5
     assert ladder["student"]["gain"] > 0.2
+    unread = torch.ones(distill["action_chunk"].shape[2], dtype=torch.bool)
+    unread[executed_slice(SIZES["obs_steps"], SIZES["action_steps"])] = False
+    distill["action_chunk"][:, :, unread] = float("nan")  # as a file of executed actions loads
+    again = scorer_ladder(
+        rows, SIZES, RankingTrainingConfig(steps=300, hidden=32), folds=4, scorers={},
+        distill=(distill, {"encoders": policy_encoders(policy)}), distillation=FAST,
+    )  # fmt: skip
+    assert again["student"] == ladder["student"]  # the student reads the executed actions only
     with pytest.raises(ValueError, match="privileged"):
         replace(FAST, teacher=RankingTrainingConfig(input="state_chunk"))
 
@@ -150,12 +159,20 @@ def test_a_distillation_file_keeps_one_frame_of_a_first_decision_and_reloads_the
     contents = distillation_contents(policy, states)
     assert contents["rows"]["point_cloud"].shape[1] == 1 and contents["history"] == 2
     save_benchmark(tmp_path / "distill.pt", contents)
-    stored = torch.load(tmp_path / "distill.pt", weights_only=True)["rows"]["point_cloud"]
-    assert stored.untyped_storage().nbytes() == stored.numel() * 2  # one float16 frame saved, not the history
-    loaded, info = load_distillation(tmp_path / "distill.pt")
+    stored = torch.load(tmp_path / "distill.pt", weights_only=True)["rows"]
+    for key in ("point_cloud", "action_chunk"):  # one float16 frame saved, not the history; executed actions only
+        assert stored[key].untyped_storage().nbytes() == stored[key].numel() * 2
+    save_benchmark(tmp_path / "compressed.pt", contents, compress=True)
+    assert (tmp_path / "compressed.pt").stat().st_size < (tmp_path / "distill.pt").stat().st_size
+    loaded, info = load_distillation(tmp_path / "compressed.pt")
     assert torch.equal(loaded["point_cloud"], states["point_cloud"].float())
     assert torch.equal(loaded["agent_pos"], states["agent_pos"])
-    assert torch.equal(loaded["action_chunk"], states["action_chunk"].half().float())  # float16 candidates
+    executed = executed_slice(policy.obs_steps, policy.action_steps)
+    assert loaded["action_chunk"].shape == states["action_chunk"].shape
+    assert torch.equal(loaded["action_chunk"][:, :, executed], states["action_chunk"][:, :, executed].half().float())
+    unread = torch.ones(states["action_chunk"].shape[2], dtype=torch.bool)
+    unread[executed] = False
+    assert unread.any() and loaded["action_chunk"][:, :, unread].isnan().all()  # what no scorer reads is NaN
     assert info["task"] == "reach" and set(info["encoders"]["weights"]) == set(ENCODER_PARTS)
     states["agent_pos"][0, 1] += 1  # a later decision: its history is not one frame, and is kept whole
     contents = distillation_contents(policy, states)

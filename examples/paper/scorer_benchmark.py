@@ -115,7 +115,7 @@ def build_distillation(cfg: Config) -> dict:
     states = distillation_states(policy, cfg.seed, cfg.states, reranking, decisions=cfg.decisions)
     contents = distillation_contents(policy, states)
     contents["source"] = {"policy": cfg.policy, "seed": cfg.seed, "decisions": cfg.decisions}
-    save_benchmark(cfg.distill, contents)
+    save_benchmark(cfg.distill, contents, compress=True)
     print(f"{cfg.distill}: {len(states)} decision states x {cfg.num_candidates} candidates")
     return contents
 

@@ -29,6 +29,7 @@ all ``M`` draws minus the clean candidate's, beside the honest ceiling
 from __future__ import annotations
 
 import io
+import lzma
 from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
@@ -45,6 +46,7 @@ from torchrl_dalir.branching.simulator import base_decisions, candidate_chunks, 
 from torchrl_dalir.config import check_at_least
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import get_task
+from torchrl_dalir.modules.config import executed_slice
 from torchrl_dalir.modules.point_cloud_critic import policy_encoders
 from torchrl_dalir.objectives.within_state_ranking import split_decisions
 from torchrl_dalir.reranking.candidates import candidate_generator
@@ -62,6 +64,7 @@ from torchrl_dalir.utils import atomic_write, weights_digest
 
 REDRAWS = "redraws"
 FORMAT = 1
+LZMA_MAGIC = b"\xfd7zXZ\x00"
 # The learned scorers of the ladder: what each reads and learns from (RankingTrainingConfig fields).
 SCORERS = {
     "critic": {"input": "state_chunk", "targets": "outcome"},
@@ -152,41 +155,55 @@ def distillation_states(
 
 
 def distillation_contents(policy, states: TensorDict) -> dict:
-    """A distillation file's contents: ``states`` (:func:`distillation_states`) and ``policy``'s encoders. When
-    every state is a first decision, whose history repeats its one observation, one frame is kept
-    (:func:`load_distillation` repeats it); the candidates are kept in float16: about 2.3 MiB per 500 first
-    decisions of 8 candidates."""
-    history = states[keys.POINT_CLOUD].shape[1]
+    """A distillation file's contents: ``states`` (:func:`distillation_states`) and ``policy``'s encoders. Only
+    what a scorer reads of the candidates is kept, their executed actions
+    (:func:`~torchrl_dalir.modules.config.executed_slice`), in float16; when every state is a first decision,
+    whose history repeats its one observation, one frame is kept (:func:`load_distillation` restores both).
+    Saved with ``compress=True`` (:func:`save_benchmark`): about 1 MiB per 1000 MetaWorld first decisions of 8
+    candidates, 2.4-3.6 MiB on Adroit."""
+    history, horizon = states[keys.POINT_CLOUD].shape[1], states[keys.ACTION_CHUNK].shape[2]
+    executed = executed_slice(policy.obs_steps, policy.action_steps)
     columns = states.to_dict()
     if all((states[key] == states[key][:, :1]).all() for key in (keys.POINT_CLOUD, keys.AGENT_POS)):
         for key in (keys.POINT_CLOUD, keys.AGENT_POS):
             columns[key] = columns[key][:, :1].clone()  # a view would save the whole history
-    columns[keys.ACTION_CHUNK] = columns[keys.ACTION_CHUNK].half()
+    columns[keys.ACTION_CHUNK] = columns[keys.ACTION_CHUNK][:, :, executed].half().clone()
     return {
         "format": FORMAT,
         "task": policy.task,
         "policy_digest": weights_digest(policy),
         "encoders": policy_encoders(policy),
         "history": history,
+        "horizon": horizon,
+        "executed": [executed.start, executed.stop],
         "rows": columns,
     }
 
 
 def load_distillation(path: str | Path) -> tuple[TensorDict, dict]:
     """A distillation file's states (float32 clouds and candidates, the history's frame repeated) and its
-    description (task, digest, the policy's encoders)."""
+    description (task, digest, the policy's encoders). A file that kept only the executed actions loads whole
+    chunks whose other entries are NaN: no scorer reads them, and any computation that did would show it."""
     rows, info = load_benchmark(path)
     for key in (keys.POINT_CLOUD, keys.AGENT_POS):
         rows[key] = rows[key].repeat_interleave(info.get("history", rows[key].shape[1]) // rows[key].shape[1], 1)
-    rows[keys.ACTION_CHUNK] = rows[keys.ACTION_CHUNK].float()
+    actions = rows[keys.ACTION_CHUNK].float()
+    if "executed" in info:
+        start, stop = info["executed"]
+        chunks = actions.new_full((*actions.shape[:2], info["horizon"], actions.shape[-1]), float("nan"))
+        chunks[:, :, start:stop] = actions
+        actions = chunks
+    rows[keys.ACTION_CHUNK] = actions
     return rows, info
 
 
-def save_benchmark(path: str | Path, contents: dict) -> None:
-    """Writes a benchmark file atomically (tensors and plain values only: it loads with ``weights_only``)."""
+def save_benchmark(path: str | Path, contents: dict, compress: bool = False) -> None:
+    """Writes a benchmark file atomically (tensors and plain values only: it loads with ``weights_only``),
+    ``compress``-ed with LZMA (a float16 point cloud of a few objects shrinks many times over)."""
     buffer = io.BytesIO()
     torch.save(contents, buffer)
-    atomic_write(path, buffer.getvalue())
+    data = buffer.getvalue()
+    atomic_write(path, lzma.compress(data) if compress else data)
 
 
 def load_benchmark(path: str | Path) -> tuple[TensorDict, dict]:
@@ -194,7 +211,10 @@ def load_benchmark(path: str | Path) -> tuple[TensorDict, dict]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no scorer benchmark at {path}: build one with examples/paper/scorer_benchmark.py")
-    contents = torch.load(path, weights_only=True)
+    data = path.read_bytes()
+    if data.startswith(LZMA_MAGIC):
+        data = lzma.decompress(data)
+    contents = torch.load(io.BytesIO(data), weights_only=True)
     if contents.get("format") != FORMAT:
         raise ValueError(f"{path} is a scorer benchmark of format {contents.get('format')}, not {FORMAT}")
     columns = contents.pop("rows")
