@@ -159,7 +159,7 @@ def distillation_contents(policy, states: TensorDict) -> dict:
     what a scorer reads of the candidates is kept, their executed actions
     (:func:`~torchrl_dalir.modules.config.executed_slice`), in float16; when every state is a first decision,
     whose history repeats its one observation, one frame is kept (:func:`load_distillation` restores both).
-    Saved with ``compress=True`` (:func:`save_benchmark`): about 1 MiB per 1000 MetaWorld first decisions of 8
+    Saved with ``compress=True`` (:func:`save_benchmark`): 0.8-2.3 MiB per 1000 MetaWorld first decisions of 8
     candidates, 2.4-3.6 MiB on Adroit."""
     history, horizon = states[keys.POINT_CLOUD].shape[1], states[keys.ACTION_CHUNK].shape[2]
     executed = executed_slice(policy.obs_steps, policy.action_steps)
