@@ -1,5 +1,5 @@
 """examples/paper/student_summary.py: the student's table is the committed result files' numbers, pooled per
-backbone, and a run whose screen failed has no test."""
+backbone, a run whose screen failed has no test and counts 0 in Table 1."""
 
 import json
 import pathlib
@@ -26,17 +26,33 @@ def test_the_summary_holds_the_committed_numbers_and_pools_them(tmp_path):
         "| fm_stick_pull_s0 | 29 | +5.2 ± 2.3 | 0.77 / +4.3 | 11 -> 22 % (15 / 4) | 8 -> 26 % (20 / 2"
         in (tmp_path / "summary.md").read_text()
     )
+    gains = [t["student"] - t["base"] for t in fm]
+    assert summary["pooled"]["fm"]["mean_gain"] == pytest.approx(sum(gains) / len(gains))
+    # Table 1's mean: DP pen s0's screen failed (2 won / 6 lost), so it counts as gain 0 beside the tested runs
+    pen = rows["dp_pen_s0"]
+    assert not pen["passed"] and pen["test"] is None
+    dp = [
+        row["test"]["student"] - row["test"]["base"]
+        for row in summary["runs"]
+        if row["backbone"] == "dp" and row["test"]
+    ]
+    assert summary["pooled"]["dp"]["table1_runs"] == len(dp) + 1
+    assert summary["pooled"]["dp"]["table1_gain"] == pytest.approx(sum(dp) / (len(dp) + 1))
+    cells = {(cell["backbone"], cell["task"]): cell for cell in summary["per_task"]}
+    assert cells[("dp", "pen")]["mean_gain"] == 0.0 and cells[("fm", "stick-pull")]["mean_gain"] == pytest.approx(0.18)
+    assert "| FM | stick-pull | 0 | +18.0 |" in (tmp_path / "summary.md").read_text()
     assert json.loads((tmp_path / "summary.json").read_text())["pooled"] == summary["pooled"]
     assert (tmp_path / "summary.png").stat().st_size > 0
 
 
-def test_a_failed_screen_has_no_test_and_a_screen_needs_its_ladder(tmp_path):
+def test_a_passed_screen_without_its_test_is_pending_and_a_screen_needs_its_ladder(tmp_path):
     for name in ("scorer_benchmark_fm_stick_pull_s0.json", "student_screen_fm_stick_pull_s0.json"):
         shutil.copy(RESULTS / name, tmp_path / name)
     main = runpy.run_path(str(SCRIPT))["main"]
     summary = main([f"results={tmp_path}", f"out={tmp_path / 'summary'}"])
-    assert summary["runs"][0]["test"] is None and summary["pooled"] == {}
-    assert "not run (screen failed)" in (tmp_path / "summary.md").read_text()
+    assert summary["runs"][0]["passed"] and summary["runs"][0]["test"] is None
+    assert summary["pooled"] == {} and summary["per_task"] == []  # pending: in no mean
+    assert "not run yet" in (tmp_path / "summary.md").read_text()
     (tmp_path / "scorer_benchmark_fm_stick_pull_s0.json").unlink()
     with pytest.raises(FileNotFoundError, match="no ladder"):
         main([f"results={tmp_path}", f"out={tmp_path / 'summary'}"])

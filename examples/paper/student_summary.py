@@ -5,8 +5,10 @@
 Reads each run's committed results in ``results`` (a run is ``<backbone>_<task>_s<seed>``, named by its screen,
 ``student_screen_<run>.json``): the scorer ladder (the ``benchmarks`` of every ``scorer_benchmark*.json``: the
 honest ceiling, the student's out-of-fold AUC and offline gain), the validation screen and, for a run whose screen
-passed, the test (``student_test_<run>.json``). Pools the test episodes per backbone: the mean gain over runs and
-the paired sign test over all their episodes. Every number comes from those files; nothing is run.
+passed, the test (``student_test_<run>.json``). Pools the test episodes per backbone: the mean gain over the tested
+runs, the paired sign test over all their episodes, and Table 1's mean, where a run whose screen failed counts as
+gain 0 (the preregistered rule); per task, the same mean over its seeds. A run that passed and has no test yet is
+left out of both means. Every number comes from those files; nothing is run.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ def run_rows(results: Path, benchmarks: Path) -> list[dict]:
             raise ValueError(f"{benchmarks / run}.pt is not the benchmark its ladder measured: another honest ceiling")
         backbone, rest = run.split("_", 1)
         task, seed = rest.rsplit("_s", 1)
+        screened = episodes(screen)
         rows.append(
             {
                 "run": run,
@@ -76,26 +79,55 @@ def run_rows(results: Path, benchmarks: Path) -> list[dict]:
                 "honest_gain_se": ceiling["honest_gain_se"],
                 "student_auc": ladder["student"]["auc"],
                 "student_gain": ladder["student"]["gain"],
-                "screen": episodes(screen),
+                "screen": screened,
+                "passed": screened["won"] > screened["lost"],
                 "test": episodes(test) if test.exists() else None,
             }
         )
     return rows
 
 
+def test_gain(row: dict) -> float | None:
+    """A run's test gain for Table 1: the student's minus the base policy's success rate; 0 where the screen
+    failed (no test episode is run); None where the screen passed and the test has not run yet."""
+    if row["test"]:
+        return row["test"]["student"] - row["test"]["base"]
+    return None if row["passed"] else 0.0
+
+
 def pooled(rows: list[dict]) -> dict:
-    """Per backbone, over the runs with a test: the mean gain (points), wins, losses and the sign test."""
+    """Per backbone: over the runs with a test, the mean gain (points), wins, losses and the sign test; over the
+    runs with a Table 1 gain (a failed screen counts 0), ``table1_gain`` and ``table1_runs``."""
     table = {}
     for backbone in sorted({row["backbone"] for row in rows}):
         tests = [row["test"] for row in rows if row["backbone"] == backbone and row["test"]]
-        if tests:
+        gains = [g for row in rows if row["backbone"] == backbone and (g := test_gain(row)) is not None]
+        if gains:
             won, lost = sum(t["won"] for t in tests), sum(t["lost"] for t in tests)
-            gain = sum(t["student"] - t["base"] for t in tests) / len(tests)
-            table[backbone] = {"runs": len(tests), "mean_gain": gain, **sign_test(lost, won)}
+            gain = sum(t["student"] - t["base"] for t in tests) / len(tests) if tests else float("nan")
+            table[backbone] = {
+                "runs": len(tests),
+                "mean_gain": gain,
+                **sign_test(lost, won),
+                "table1_runs": len(gains),
+                "table1_gain": sum(gains) / len(gains),
+            }
     return table
 
 
-def markdown(rows: list[dict], pools: dict) -> str:
+def per_task(rows: list[dict]) -> list[dict]:
+    """Table 1's cells: per backbone and task, the seeds with a Table 1 gain and its mean over them."""
+    cells = {}
+    for row in rows:
+        if (gain := test_gain(row)) is not None:
+            cells.setdefault((row["backbone"], row["task"]), {})[row["seed"]] = gain
+    return [
+        {"backbone": backbone, "task": task, "seeds": sorted(gains), "mean_gain": sum(gains.values()) / len(gains)}
+        for (backbone, task), gains in sorted(cells.items())
+    ]
+
+
+def markdown(rows: list[dict], pools: dict, cells: list[dict]) -> str:
     lines = [
         "| run | split decisions | honest ceiling (± SE) | student offline: AUC / gain "
         "| validation: base -> student (won / lost) | test: base -> student (won / lost, p) |",
@@ -107,7 +139,7 @@ def markdown(rows: list[dict], pools: dict) -> str:
             f"{100 * test['base']:.0f} -> {100 * test['student']:.0f} % ({test['won']} / {test['lost']}, "
             f"p = {test['p_value']:.2g})"
             if test
-            else "not run (screen failed)"
+            else ("not run yet" if row["passed"] else "not run (screen failed)")
         )
         lines.append(
             f"| {row['run']} | {row['split_decisions']} | "
@@ -118,8 +150,14 @@ def markdown(rows: list[dict], pools: dict) -> str:
     for backbone, pool in pools.items():
         lines.append(
             f"\n{backbone.upper()}: {pool['runs']} tested runs, mean test gain {100 * pool['mean_gain']:+.1f} points, "
-            f"{pool['dalir_only']} won / {pool['base_only']} lost (sign test p = {pool['p_value']:.2g})."
+            f"{pool['dalir_only']} won / {pool['base_only']} lost (sign test p = {pool['p_value']:.2g}); "
+            f"Table 1's mean over {pool['table1_runs']} screened runs (a failed screen counts 0): "
+            f"{100 * pool['table1_gain']:+.1f} points."
         )
+    lines += ["", "| backbone | task | seeds | mean test gain (failed screen = 0) |", "| --- | --- | --- | --- |"]
+    for cell in cells:
+        seeds = ", ".join(str(seed) for seed in cell["seeds"])
+        lines.append(f"| {cell['backbone'].upper()} | {cell['task']} | {seeds} | {100 * cell['mean_gain']:+.1f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -128,11 +166,16 @@ def main(argv: list[str]) -> dict:
     rows = run_rows(Path(cfg.results), Path(cfg.benchmarks))
     if not rows:
         raise FileNotFoundError(f"no student_screen_<run>.json in {cfg.results}: screen a student first")
-    pools = pooled(rows)
-    summary = {**provenance("examples/paper/student_summary.py", argv, cfg), "runs": rows, "pooled": pools}
+    pools, cells = pooled(rows), per_task(rows)
+    summary = {
+        **provenance("examples/paper/student_summary.py", argv, cfg),
+        "runs": rows,
+        "pooled": pools,
+        "per_task": cells,
+    }
     out = Path(cfg.out)
     atomic_write(out.with_suffix(".json"), json.dumps(summary, indent=1))
-    table = markdown(rows, pools)
+    table = markdown(rows, pools, cells)
     atomic_write(out.with_suffix(".md"), table)
     gains = [
         {
