@@ -91,3 +91,34 @@ def test_the_committed_benchmark_reproduces_its_numbers(scorer, one_thread):
     # a trained scorer: the same up to the last bits of another CPU's kernels, which can move a near tie
     assert again[scorer]["auc"] == pytest.approx(expected[scorer]["auc"], abs=0.02)
     assert again[scorer]["gain"] == pytest.approx(expected[scorer]["gain"], abs=0.02)
+
+
+def test_pooled_decisions_lift_a_teacher_that_too_few_decisions_limit(tmp_path):
+    """examples/paper/pooled_teacher.py: alone, a run's teacher is the ladder's; pooled with another run's decisions
+    of the same task (never scored), it learns the toy's state-to-winner rule that its own 16 decisions do not show."""
+    rows, _ = toy_benchmark(decisions=96)
+    for name, part in (("few", rows[:16]), ("many", rows[16:])):
+        contents = {"format": 1, "task": "reach", "policy_digest": "0" * 64, "sizes": SIZES, "rows": part.to_dict()}
+        save_benchmark(tmp_path / f"{name}.pt", contents)
+    main = runpy.run_path(str(ROOT / "examples" / "paper" / "pooled_teacher.py"))["main"]
+    argv = [
+        "files=[few,many]",
+        "measured=[few]",
+        "scorers=[teacher_soft]",
+        "folds=4",
+        f"benchmarks={tmp_path}",
+        f"json={tmp_path / 'p.json'}",
+    ]
+    argv += [f"training.{k}={getattr(FAST, k)}" for k in ("steps", "hidden", "seed")]
+    runs = main(argv)["runs"]
+    assert list(runs) == ["few"]
+    result = runs["few"]
+    few, info = load_benchmark(tmp_path / "few.pt")
+    ladder = scorer_ladder(few, info["sizes"], FAST, folds=4, scorers={"teacher_soft": SCORERS["teacher_soft"]})
+    assert result["teacher_soft_alone"] == {
+        "auc": ladder["teacher_soft"]["auc"],
+        "gain": ladder["teacher_soft"]["gain"],
+    }
+    assert result["pooled_decisions"] == 96
+    assert result["teacher_soft_pooled"]["auc"] > result["teacher_soft_alone"]["auc"] + 0.1
+    assert json.loads((tmp_path / "p.json").read_text())["runs"]["few"] == result

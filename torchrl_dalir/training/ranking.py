@@ -229,6 +229,7 @@ def cross_validated_auc(
     folds: int = 0,
     judge: torch.Tensor | None = None,
     train=None,
+    pool: TensorDict | None = None,
     **kwargs,
 ) -> dict:
     """The out-of-fold within-decision AUC: the episodes fall into ``folds`` groups (0: one per episode), and the
@@ -240,7 +241,8 @@ def cross_validated_auc(
     With ``judge`` ``[D, K]`` (e.g. each candidate's mean outcome over several noise draws), the clean and the
     picked candidates are judged by it instead of the stored outcome. ``train`` replaces
     :func:`train_ranking_scorer` (same arguments and returns; e.g.
-    :func:`~torchrl_dalir.training.distillation.train_student`)."""
+    :func:`~torchrl_dalir.training.distillation.train_student`). ``pool``: more decisions (rows with the same keys,
+    e.g. other runs of the task) added to every fold's training and never scored: does more labelled data help?"""
     train = train if train is not None else train_ranking_scorer
     rows = _rows(outcomes)
     success = rows[SUCCESS]
@@ -250,7 +252,11 @@ def cross_validated_auc(
     for group in seeds.tensor_split(folds or len(seeds)):
         fold = torch.isin(rows[RESET_SEED], group)
         if (split & fold).any() and not fold.all():  # a single episode has nothing to train on out of fold
-            _, metrics = train(rows, policy, cfg, held_out=fold, **kwargs)
+            if pool is None:
+                _, metrics = train(rows, policy, cfg, held_out=fold, **kwargs)
+            else:
+                held_out = torch.cat([fold, torch.zeros(len(pool), dtype=torch.bool)])
+                _, metrics = train(torch.cat([rows, pool]), policy, cfg, held_out=held_out, **kwargs)
             logits[fold] = torch.tensor(metrics["held_out_logits"])
     scored = split & ~logits.isnan().any(-1)
     # the stored outcome: where the candidates do not split, any pick does as the clean one; a judge (the
