@@ -36,9 +36,12 @@ def test_the_summary_holds_the_committed_numbers_and_pools_them(tmp_path):
         for row in summary["runs"]
         if row["backbone"] == "dp" and row["test"]
     ]
-    assert summary["pooled"]["dp"]["table1_runs"] == len(dp) + 1
-    assert summary["pooled"]["dp"]["table1_gain"] == pytest.approx(sum(dp) / (len(dp) + 1))
     cells = {(cell["backbone"], cell["task"]): cell for cell in summary["per_task"]}
+    dp_cells = [cell["mean_gain"] for (backbone, _), cell in cells.items() if backbone == "dp"]
+    assert summary["pooled"]["dp"]["table1_runs"] == len(dp) + 1 == summary["pooled"]["dp"]["table1_tasks"]
+    assert summary["pooled"]["dp"]["table1_gain"] == pytest.approx(sum(dp_cells) / len(dp_cells))
+    fm_cells = [cell["mean_gain"] for (backbone, _), cell in cells.items() if backbone == "fm"]
+    assert summary["pooled"]["fm"]["table1_gain"] == pytest.approx(sum(fm_cells) / len(fm_cells))  # over tasks
     assert cells[("dp", "pen")]["mean_gain"] == 0.0 and cells[("fm", "stick-pull")]["mean_gain"] == pytest.approx(0.18)
     assert "| FM | stick-pull | 0 | +18.0 |" in (tmp_path / "summary.md").read_text()
     assert json.loads((tmp_path / "summary.json").read_text())["pooled"] == summary["pooled"]

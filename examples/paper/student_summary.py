@@ -6,9 +6,9 @@ Reads each run's committed results in ``results`` (a run is ``<backbone>_<task>_
 ``student_screen_<run>.json``): the scorer ladder (the ``benchmarks`` of every ``scorer_benchmark*.json``: the
 honest ceiling, the student's out-of-fold AUC and offline gain), the validation screen and, for a run whose screen
 passed, the test (``student_test_<run>.json``). Pools the test episodes per backbone: the mean gain over the tested
-runs, the paired sign test over all their episodes, and Table 1's mean, where a run whose screen failed counts as
-gain 0 (the preregistered rule); per task, the same mean over its seeds. A run that passed and has no test yet is
-left out of both means. Every number comes from those files; nothing is run.
+runs, the paired sign test over all their episodes, and Table 1's mean: per task, the mean gain over its seeds,
+where a run whose screen failed counts as gain 0 (the preregistered rule), then the mean over tasks. A run that
+passed and has no test yet is left out of both means. Every number comes from those files; nothing is run.
 """
 
 from __future__ import annotations
@@ -95,22 +95,24 @@ def test_gain(row: dict) -> float | None:
     return None if row["passed"] else 0.0
 
 
-def pooled(rows: list[dict]) -> dict:
-    """Per backbone: over the runs with a test, the mean gain (points), wins, losses and the sign test; over the
-    runs with a Table 1 gain (a failed screen counts 0), ``table1_gain`` and ``table1_runs``."""
+def pooled(rows: list[dict], cells: list[dict]) -> dict:
+    """Per backbone: over the runs with a test, the mean gain (points), wins, losses and the sign test; Table 1's
+    mean, over the backbone's tasks of each task's mean over its seeds (:func:`per_task`, a failed screen counts
+    0), as ``table1_gain`` over ``table1_tasks`` tasks of ``table1_runs`` runs."""
     table = {}
     for backbone in sorted({row["backbone"] for row in rows}):
         tests = [row["test"] for row in rows if row["backbone"] == backbone and row["test"]]
-        gains = [g for row in rows if row["backbone"] == backbone and (g := test_gain(row)) is not None]
-        if gains:
+        tasks = [cell for cell in cells if cell["backbone"] == backbone]
+        if tasks:
             won, lost = sum(t["won"] for t in tests), sum(t["lost"] for t in tests)
             gain = sum(t["student"] - t["base"] for t in tests) / len(tests) if tests else float("nan")
             table[backbone] = {
                 "runs": len(tests),
                 "mean_gain": gain,
                 **sign_test(lost, won),
-                "table1_runs": len(gains),
-                "table1_gain": sum(gains) / len(gains),
+                "table1_tasks": len(tasks),
+                "table1_runs": sum(len(cell["seeds"]) for cell in tasks),
+                "table1_gain": sum(cell["mean_gain"] for cell in tasks) / len(tasks),
             }
     return table
 
@@ -151,8 +153,8 @@ def markdown(rows: list[dict], pools: dict, cells: list[dict]) -> str:
         lines.append(
             f"\n{backbone.upper()}: {pool['runs']} tested runs, mean test gain {100 * pool['mean_gain']:+.1f} points, "
             f"{pool['dalir_only']} won / {pool['base_only']} lost (sign test p = {pool['p_value']:.2g}); "
-            f"Table 1's mean over {pool['table1_runs']} screened runs (a failed screen counts 0): "
-            f"{100 * pool['table1_gain']:+.1f} points."
+            f"Table 1's mean over {pool['table1_tasks']} tasks ({pool['table1_runs']} screened runs; a failed screen "
+            f"counts 0): {100 * pool['table1_gain']:+.1f} points."
         )
     lines += ["", "| backbone | task | seeds | mean test gain (failed screen = 0) |", "| --- | --- | --- | --- |"]
     for cell in cells:
@@ -166,7 +168,8 @@ def main(argv: list[str]) -> dict:
     rows = run_rows(Path(cfg.results), Path(cfg.benchmarks))
     if not rows:
         raise FileNotFoundError(f"no student_screen_<run>.json in {cfg.results}: screen a student first")
-    pools, cells = pooled(rows), per_task(rows)
+    cells = per_task(rows)
+    pools = pooled(rows, cells)
     summary = {
         **provenance("examples/paper/student_summary.py", argv, cfg),
         "runs": rows,
