@@ -67,12 +67,12 @@ def main(argv: list[str]) -> dict:
     results = {}
     for name in cfg.measured or cfg.files:
         rows, info = loaded[name]
-        others = [other for key, (other, _) in loaded.items() if key != name]
+        others = torch.cat([other for key, (other, _) in loaded.items() if key != name])
         policy = SimpleNamespace(**info["sizes"])
-        results[name] = {"decisions": len(rows), "pooled_decisions": len(rows) + sum(len(o) for o in others)}
+        results[name] = {"decisions": len(rows), "pooled_decisions": len(rows) + len(others)}
         for scorer in cfg.scorers:
             training = replace(cfg.training, **SCORERS[scorer])
-            for label, pool in (("alone", None), ("pooled", torch.cat(others))):
+            for label, pool in (("alone", None), ("pooled", others)):
                 cv = cross_validated_auc(rows, policy, training, cfg.folds, rows[SOFT_SUCCESS], pool=pool)
                 gain = cv["pick_success"] - cv["clean_success"]
                 results[name][f"{scorer}_{label}"] = {"auc": cv["auc"], "gain": gain}

@@ -249,14 +249,13 @@ def cross_validated_auc(
     split = split_decisions(success)
     seeds = rows[RESET_SEED].unique(sorted=True)
     logits = torch.full(success.shape, float("nan"))
+    trained_on = rows if pool is None else torch.cat([rows, pool])
+    never_held_out = torch.zeros(len(trained_on) - len(rows), dtype=torch.bool)  # the pool's decisions
     for group in seeds.tensor_split(folds or len(seeds)):
         fold = torch.isin(rows[RESET_SEED], group)
         if (split & fold).any() and not fold.all():  # a single episode has nothing to train on out of fold
-            if pool is None:
-                _, metrics = train(rows, policy, cfg, held_out=fold, **kwargs)
-            else:
-                held_out = torch.cat([fold, torch.zeros(len(pool), dtype=torch.bool)])
-                _, metrics = train(torch.cat([rows, pool]), policy, cfg, held_out=held_out, **kwargs)
+            held_out = torch.cat([fold, never_held_out])
+            _, metrics = train(trained_on, policy, cfg, held_out=held_out, **kwargs)
             logits[fold] = torch.tensor(metrics["held_out_logits"])
     scored = split & ~logits.isnan().any(-1)
     # the stored outcome: where the candidates do not split, any pick does as the clean one; a judge (the
