@@ -122,3 +122,24 @@ def test_pooled_decisions_lift_a_teacher_that_too_few_decisions_limit(tmp_path):
     assert result["pooled_decisions"] == 96
     assert result["teacher_soft_pooled"]["auc"] > result["teacher_soft_alone"]["auc"] + 0.1
     assert json.loads((tmp_path / "p.json").read_text())["runs"]["few"] == result
+
+
+def test_teacher_families_rank_the_toy_and_the_mlp_is_the_ladders_teacher(tmp_path):
+    """examples/paper/teacher_families.py: its ``mlp`` is the ladder's soft teacher to the last bit, trees learn the
+    toy's state-times-chunk rule better than it does, on chunks as they are and centred on their decision's mean."""
+    rows, _ = toy_benchmark()
+    contents = {"format": 1, "task": "reach", "policy_digest": "0" * 64, "sizes": SIZES, "rows": rows.to_dict()}
+    save_benchmark(tmp_path / "toy.pt", contents)
+    main = runpy.run_path(str(ROOT / "examples" / "paper" / "teacher_families.py"))["main"]
+    argv = ["files=[toy]", "folds=4", f"benchmarks={tmp_path}", f"json={tmp_path / 'f.json'}"]
+    argv += [f"training.{k}={getattr(FAST, k)}" for k in ("steps", "hidden", "seed")]
+    toy = main(argv)["runs"]["toy"]
+    loaded, info = load_benchmark(tmp_path / "toy.pt")
+    ladder = scorer_ladder(loaded, info["sizes"], FAST, folds=4, scorers={"teacher_soft": SCORERS["teacher_soft"]})
+    assert toy["mlp/chunk"] == {"auc": ladder["teacher_soft"]["auc"], "gain": ladder["teacher_soft"]["gain"]}
+    assert min(toy["extra_trees/chunk"]["auc"], toy["boosted_trees/chunk"]["auc"]) > toy["mlp/chunk"]["auc"] + 0.1
+    assert toy["boosted_trees/centred"]["auc"] > 0.8
+    assert toy["ridge/chunk"]["auc"] < 0.7  # a product of signs is not linear in the inputs
+    assert json.loads((tmp_path / "f.json").read_text())["runs"]["toy"] == toy
+    with pytest.raises(ValueError, match="unknown models"):
+        main([*argv, "models=[svm]"])

@@ -59,3 +59,26 @@ def test_a_passed_screen_without_its_test_is_pending_and_a_screen_needs_its_ladd
     (tmp_path / "scorer_benchmark_fm_stick_pull_s0.json").unlink()
     with pytest.raises(FileNotFoundError, match="no ladder"):
         main([f"results={tmp_path}", f"out={tmp_path / 'summary'}"])
+
+
+def test_the_gate_keeps_the_base_policy_where_the_offline_gain_is_small(tmp_path):
+    main = runpy.run_path(str(SCRIPT))["main"]
+    summary = main([f"out={tmp_path / 'summary'}"])
+    rows = {row["run"]: row for row in summary["runs"]}
+    # FM door s2: offline +0.7 points, below +2: the base policy runs, so its -12-point test counts 0 gated
+    assert not rows["fm_door_s2"]["deployed"] and rows["fm_stick_pull_s0"]["deployed"]
+    cells = {(cell["backbone"], cell["task"]): cell for cell in summary["per_task"]}
+    assert cells[("fm", "door")]["mean_gain"] == pytest.approx((0.06 + 0.0 - 0.12) / 3)
+    assert cells[("fm", "door")]["mean_gain_gated"] == 0.0
+    assert cells[("fm", "stick-pull")]["mean_gain_gated"] == pytest.approx(0.18)
+    fm = summary["pooled"]["fm"]
+    fm_cells = [cell["mean_gain_gated"] for (backbone, _), cell in cells.items() if backbone == "fm"]
+    assert fm["table1_gain_gated"] == pytest.approx(sum(fm_cells) / len(fm_cells))
+    deployed = [row["test"] for row in summary["runs"] if row["backbone"] == "fm" and row["deployed"] and row["test"]]
+    assert fm["deployed"]["runs"] == len(deployed) and fm["deployed"]["dalir_only"] == sum(t["won"] for t in deployed)
+    # every committed run was seen when the gate was chosen: none is its evidence, unless told otherwise
+    assert summary["pooled_gate_judged"] == {} and "(seen)" in (tmp_path / "summary.md").read_text()
+    judged = main([f"out={tmp_path / 'judged'}", "gate_seen=[]", "gate=0.05"])
+    assert judged["pooled_gate_judged"] == judged["pooled"]
+    stick_pull = next(cell for cell in judged["per_task"] if cell["task"] == "stick-pull")
+    assert stick_pull["mean_gain_gated"] == 0.0  # +4.3 offline is below a +5-point gate

@@ -19,16 +19,12 @@ from types import SimpleNamespace
 
 import torch
 
-from torchrl_dalir import keys
-from torchrl_dalir.branching.outcomes import RESET_SEED, SUCCESS
-from torchrl_dalir.branching.scorer_benchmark import REDRAWS, SCORERS, all_draws, load_benchmark
+from torchrl_dalir.branching.scorer_benchmark import SCORERS, teacher_rows
 from torchrl_dalir.config import check_at_least, parse_config
 from torchrl_dalir.training.ranking import SOFT_SUCCESS, RankingTrainingConfig, cross_validated_auc
 from torchrl_dalir.utils import atomic_write, provenance
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks" / "scorer"
-# what a teacher reads and is judged by: the keys every run of a task shares
-TEACHER_KEYS = (keys.PRIVILEGED_STATE, keys.ACTION_CHUNK, SUCCESS, REDRAWS, RESET_SEED)
 
 
 @dataclass
@@ -49,13 +45,6 @@ class Config:
             raise ValueError(f"unknown scorers {sorted(unknown)}; known: {sorted(SCORERS)}")
         if not set(self.measured) <= set(self.files):
             raise ValueError(f"measured {self.measured} must be among files {self.files}")
-
-
-def teacher_rows(path: Path) -> tuple:
-    """A benchmark's decisions as the teacher reads them (with each candidate's chance over draws) and its info."""
-    rows, info = load_benchmark(path)
-    rows = rows.select(*TEACHER_KEYS)
-    return rows.set(SOFT_SUCCESS, all_draws(rows).float().mean(-1)), info
 
 
 def main(argv: list[str]) -> dict:

@@ -228,6 +228,18 @@ def all_draws(rows: TensorDict) -> torch.Tensor:
     return torch.cat([rows[SUCCESS].unsqueeze(-1), rows[REDRAWS]], -1)
 
 
+# what a privileged teacher reads and is judged by: the keys every run of a task shares
+TEACHER_KEYS = (keys.PRIVILEGED_STATE, keys.ACTION_CHUNK, SUCCESS, REDRAWS, RESET_SEED)
+
+
+def teacher_rows(path: str | Path) -> tuple[TensorDict, dict]:
+    """A benchmark file's decisions as a privileged teacher reads them (:data:`TEACHER_KEYS`, with each
+    candidate's chance over the draws as ``soft_success``) and the file's info."""
+    rows, info = load_benchmark(path)
+    rows = rows.select(*TEACHER_KEYS)
+    return rows.set(SOFT_SUCCESS, all_draws(rows).float().mean(-1)), info
+
+
 def scorer_ladder(
     rows: TensorDict,
     sizes: dict,
