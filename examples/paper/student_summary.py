@@ -162,9 +162,14 @@ def pool_lines(pools: dict, scope: str) -> list[str]:
     lines = []
     for backbone, pool in pools.items():
         deployed = pool["deployed"]
+        tested = (
+            f"{pool['runs']} tested runs, mean test gain {100 * pool['mean_gain']:+.1f} points, {pool['dalir_only']} "
+            f"won / {pool['base_only']} lost (sign test p = {pool['p_value']:.2g})"
+            if pool["runs"]
+            else "no tested run"
+        )
         lines.append(
-            f"\n{backbone.upper()}, {scope}: {pool['runs']} tested runs, mean test gain {100 * pool['mean_gain']:+.1f} "
-            f"points, {pool['dalir_only']} won / {pool['base_only']} lost (sign test p = {pool['p_value']:.2g}); "
+            f"\n{backbone.upper()}, {scope}: {tested}; "
             f"Table 1's mean over {pool['table1_tasks']} tasks ({pool['table1_runs']} screened runs; a failed screen "
             f"counts 0): {100 * pool['table1_gain']:+.1f} points, gated {100 * pool['table1_gain_gated']:+.1f} "
             f"(tested runs the gate deploys: {deployed['runs']}, {deployed['dalir_only']} won / "
