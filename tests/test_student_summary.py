@@ -76,8 +76,10 @@ def test_the_gate_keeps_the_base_policy_where_the_offline_gain_is_small(tmp_path
     assert fm["table1_gain_gated"] == pytest.approx(sum(fm_cells) / len(fm_cells))
     deployed = [row["test"] for row in summary["runs"] if row["backbone"] == "fm" and row["deployed"] and row["test"]]
     assert fm["deployed"]["runs"] == len(deployed) and fm["deployed"]["dalir_only"] == sum(t["won"] for t in deployed)
-    # every committed run was seen when the gate was chosen: none is its evidence, unless told otherwise
-    assert summary["pooled_gate_judged"] == {} and "(seen)" in (tmp_path / "summary.md").read_text()
+    # the runs the gate was chosen on are no evidence for it: with every run listed as seen, none is judged
+    assert not rows["fm_stick_pull_s0"]["gate_judged"] and "| student (seen) |" in (tmp_path / "summary.md").read_text()
+    everything = main([f"out={tmp_path / 'seen'}", f"gate_seen=[{','.join(rows)}]"])
+    assert everything["pooled_gate_judged"] == {} and everything["pooled"] == summary["pooled"]
     judged = main([f"out={tmp_path / 'judged'}", "gate_seen=[]", "gate=0.05"])
     assert judged["pooled_gate_judged"] == judged["pooled"]
     stick_pull = next(cell for cell in judged["per_task"] if cell["task"] == "stick-pull")
