@@ -30,6 +30,11 @@ def _stage(command: list[str]) -> tuple[str, pathlib.Path]:
     if script.name == "outcome_noise.py":
         assert (cfg.draws, cfg.only_split) == ([1, 2, 3], False)  # the honest ceiling's redraws
         return "redraws", pathlib.Path(cfg.json)
+    if script.name == "critic_screen.py":
+        assert cfg.student and cfg.episodes == 100 and cfg.seed == (0 if cfg.test else 1) and cfg.decisions == 1
+        return ("test" if cfg.test else "screen"), pathlib.Path(cfg.json)
+    if cfg.files:  # scorer_benchmark.py measuring the ladder on the run's benchmark file
+        return "ladder", pathlib.Path(cfg.json)
     return ("benchmark", pathlib.Path(cfg.build)) if cfg.build else ("distillation", pathlib.Path(cfg.distill))
 
 
@@ -50,6 +55,9 @@ def script(monkeypatch):
         elif stage == "branching":
             artifact.mkdir()
             (artifact / "meta.json").write_text(json.dumps({"complete": True}))
+        elif stage == "screen":  # disassemble's student wins 5 and loses 3 of its episodes, shelf-place's 3 and 3
+            won = 5 if "disassemble" in artifact.name else 3
+            artifact.write_text(json.dumps({"paired": {"dalir_only": won, "base_only": 3}}))
         else:
             artifact.touch()
         return 0, 1.0
@@ -113,3 +121,24 @@ def test_later_decisions_are_branched_and_distilled_into_files_of_their_own(scri
     for stage in ("branching", "distillation"):
         script_config = runpy.run_path(commands[stage][1])["Config"]
         assert parse_config(script_config, commands[stage][2:]).decisions == 4
+
+
+def test_evaluate_runs_the_ladder_the_screen_and_only_a_passed_screen_s_test(script, tmp_path):
+    """With evaluate=true the preregistered protocol follows the files: a screen that wins as many episodes as it
+    loses fails the rule, and its run's test episodes are never run, then or on resuming."""
+    module, calls = script
+    argv = [f"out={tmp_path}", "tasks=[disassemble,shelf-place]", "jobs=1", "evaluate=true"]
+    module["main"](argv)
+    evaluation = ["ladder", "screen", "test"]
+    assert calls == STAGES + evaluation + STAGES + evaluation[:2]
+    results = tmp_path / "docs" / "results"
+    assert (results / "student_test_fm_disassemble_s0.json").exists()
+    assert not (results / "student_test_fm_shelf_place_s0.json").exists()
+    summary = json.loads((tmp_path / "scorer_benchmark_runs.json").read_text())
+    assert summary["runs"][1]["stages"]["test"] == "screen failed"
+
+    calls.clear()
+    module["main"](argv)
+    assert calls == []
+    assert [run["stages"]["test"] for run in json.loads((tmp_path / "scorer_benchmark_runs.json").read_text())[
+        "runs"]] == ["done before", "screen failed"]  # fmt: skip

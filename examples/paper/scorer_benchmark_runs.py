@@ -11,7 +11,14 @@ tasks side by side, each task's seeds in turn):
    point-dropout candidates each (``branched_ranking.py``);
 3. every decision's candidates continued under ``draws`` further noise draws, with the honest ceiling
    (``outcome_noise.py``: ``docs/results/honest_ceiling_<run>.json``);
-4. the benchmark file ``benchmarks/scorer/<run>.pt``; 5. its distillation file ``benchmarks/scorer/distill/<run>.pt``.
+4. the benchmark file ``benchmarks/scorer/<run>.pt``; 5. its distillation file ``benchmarks/scorer/distill/<run>.pt``;
+
+and with ``evaluate=true`` the preregistered protocol on it (``docs/results/student_screen_prereg*.json``):
+
+6. the ladder, ``docs/results/scorer_benchmark_<run>.json`` (``scorer_benchmark.py files=[...]``);
+7. the validation screen, ``student_screen_<run>.json`` (``critic_screen.py student=... seed=1``);
+8. only if the screen passed (:func:`~torchrl_dalir.evaluation.compare.screen_passed`), the test episodes,
+   ``student_test_<run>.json`` (``seed=0 test=true``). Then ``python examples/paper/student_summary.py``.
 
 A stage whose artifact is whole is skipped, so a stopped command resumes where it was (branching resumes
 within its episodes, too). The files go to ``<results>/docs/results/`` and ``<results>/benchmarks/scorer/``
@@ -34,6 +41,7 @@ from pathlib import Path
 from torchrl_dalir.checkpoints.files import training_finished
 from torchrl_dalir.config import check_at_least, check_choice, config_dict, parse_config
 from torchrl_dalir.envs.tasks import TASKS
+from torchrl_dalir.evaluation.compare import screen_passed
 from torchrl_dalir.utils import atomic_write, run_logged
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -52,13 +60,16 @@ class Config:
     states: int = 1000  # distillation states (data seeds 600000, ...)
     out: str = "outputs/scorer_benchmark"  # policies, branched folders and logs
     results: str = ""  # where docs/results/ and benchmarks/scorer/ go ("": under out; "." adds them to this checkout)
+    evaluate: bool = False  # then the ladder, the validation screen and, if it passed, the test episodes
+    eval_episodes: int = 100  # the screen's and the test's episodes (evaluation seeds 1 and 0)
     jobs: int = 2
     threads: int = 1
 
     def __post_init__(self):
         check_choice("policy", self.policy, ("fm", "dp"))
         for name, minimum in (
-            ("episodes", 1), ("decisions", 1), ("num_candidates", 2), ("states", 1), ("jobs", 1), ("threads", 1)
+            ("episodes", 1), ("decisions", 1), ("num_candidates", 2), ("states", 1), ("eval_episodes", 1), ("jobs", 1),
+            ("threads", 1),
         ):  # fmt: skip
             check_at_least(name, getattr(self, name), minimum)
         for task in self.tasks:
@@ -78,9 +89,15 @@ def _branched_complete(folder: Path) -> bool:
     return meta.exists() and json.loads(meta.read_text()).get("complete", False)
 
 
-def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Callable[[], bool], list[str]]]:
+def _screen_failed(screen: Path) -> str | bool:
+    """Whether the test stage is not needed: its run's screen ran and failed the preregistered rule."""
+    return screen.exists() and not screen_passed(json.loads(screen.read_text())["paired"]) and "screen failed"
+
+
+def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Callable[[], bool | str], list[str]]]:
     """The run's stages in order: ``(name, done, command)``. A stage is done when its artifact is whole: the
-    policy's last training step, a complete branched collection, a file (each written atomically)."""
+    policy's last training step, a complete branched collection, a file (each written atomically); the test
+    also when the screen failed (``done`` then says why)."""
     out, run = Path(cfg.out), run_name(cfg, task, seed)
     results = Path(cfg.results or out)
     policy = out / "policies" / task / f"{cfg.policy}_seed{seed}" / "checkpoint.pt"
@@ -89,7 +106,18 @@ def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Callable[[], bo
     redraws = results / "docs" / "results" / f"honest_ceiling_{run}.json"
     benchmark = results / "benchmarks" / "scorer" / f"{run}.pt"
     distillation = benchmark.parent / "distill" / f"{run}.pt"
+    ladder, screen, test = (results / "docs" / "results" / f"{name}_{run}.json" for name in (
+        "scorer_benchmark", "student_screen", "student_test"))  # fmt: skip
     python = [sys.executable]
+    screening = [*python, str(PAPER / "critic_screen.py"), f"policy={policy}", f"student={benchmark}",
+                 f"episodes={cfg.eval_episodes}", f"decisions={cfg.decisions}", "progress=false"]  # fmt: skip
+    evaluation = [
+        ("ladder", ladder.exists,
+         [*python, str(PAPER / "scorer_benchmark.py"), f"files=[{benchmark}]", f"json={ladder}"]),
+        ("screen", screen.exists, [*screening, "seed=1", f"out={out / 'student_screen'}", f"json={screen}"]),
+        ("test", lambda: test.exists() or _screen_failed(screen),
+         [*screening, "seed=0", "test=true", f"out={out / 'student_test'}", f"json={test}"]),
+    ]  # fmt: skip
     return [
         (
             "policy",
@@ -123,7 +151,7 @@ def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Callable[[], bo
              f"states={cfg.states}", "seed=600000", f"num_candidates={cfg.num_candidates}",
              f"decisions={cfg.decisions}"],
         ),
-    ]  # fmt: skip
+    ] + (evaluation if cfg.evaluate else [])  # fmt: skip
 
 
 def run_one(cfg: Config, task: str, seed: int) -> dict:
@@ -132,8 +160,8 @@ def run_one(cfg: Config, task: str, seed: int) -> dict:
     log = Path(cfg.out) / "logs" / f"{run}.log"
     record = {"run": run, "task": task, "seed": seed, "policy": cfg.policy, "log": str(log), "stages": {}}
     for name, done, command in stages(cfg, task, seed):
-        if done():
-            record["stages"][name] = "done before"
+        if reason := done():
+            record["stages"][name] = reason if isinstance(reason, str) else "done before"
             continue
         code, seconds = run_logged(command, log, cfg.threads)
         record["stages"][name] = {"exit_code": code, "seconds": round(seconds, 1)}

@@ -25,7 +25,7 @@ from pathlib import Path
 from torchrl_dalir.branching.outcome_noise import honest_ceiling
 from torchrl_dalir.branching.scorer_benchmark import all_draws, load_benchmark
 from torchrl_dalir.config import parse_config
-from torchrl_dalir.evaluation.compare import BASE, sign_test
+from torchrl_dalir.evaluation.compare import BASE, screen_passed, sign_test
 from torchrl_dalir.evaluation.plots import plot_metric_by_task
 from torchrl_dalir.utils import atomic_write, provenance
 
@@ -48,9 +48,8 @@ class Config:
     gate_seen: list[str] = field(default_factory=lambda: list(GATE_SEEN))  # runs the gate was chosen on
 
 
-def episodes(path: Path) -> dict:
+def episodes(result: dict) -> dict:
     """A screen's or test's base and student success rates, paired counts and episodes."""
-    result = json.loads(path.read_text())
     methods, paired = result["methods"], result["paired"]
     return {
         "episodes": methods[BASE]["episodes"],
@@ -80,7 +79,8 @@ def run_rows(results: Path, benchmarks: Path, gate: float, gate_seen: list[str])
             raise ValueError(f"{benchmarks / run}.pt is not the benchmark its ladder measured: another honest ceiling")
         backbone, rest = run.split("_", 1)
         task, seed = rest.rsplit("_s", 1)
-        screened = episodes(screen)
+        screen_result = json.loads(screen.read_text())
+        screened = episodes(screen_result)
         rows.append(
             {
                 "run": run,
@@ -93,8 +93,8 @@ def run_rows(results: Path, benchmarks: Path, gate: float, gate_seen: list[str])
                 "student_auc": ladder["student"]["auc"],
                 "student_gain": ladder["student"]["gain"],
                 "screen": screened,
-                "passed": screened["won"] > screened["lost"],
-                "test": episodes(test) if test.exists() else None,
+                "passed": screen_passed(screen_result["paired"]),
+                "test": episodes(json.loads(test.read_text())) if test.exists() else None,
                 "deployed": ladder["student"]["gain"] >= gate,
                 "gate_judged": run not in gate_seen,
             }

@@ -278,6 +278,13 @@ def sign_test(base_only: int, dalir_only: int) -> dict:
     return {"base_only": base_only, "dalir_only": dalir_only, "p_value": p}
 
 
+def screen_passed(paired: dict) -> bool:
+    """The preregistered screen rule (``docs/results/*_screen_prereg*.json``): a reranker passes its validation
+    screen when it wins more of the paired episodes than it loses (``dalir_only > base_only`` of
+    :func:`paired_sign_test`). Only a run that passed runs its test episodes."""
+    return paired["dalir_only"] > paired["base_only"]
+
+
 def p_better(base_only: int, dalir_only: int) -> float:
     """The one-sided sign-test p-value of "DALI-R solves more of the paired episodes than the
     base policy", from the discordant counts of :func:`paired_sign_test` (1 without any)."""
