@@ -140,5 +140,5 @@ def test_evaluate_runs_the_ladder_the_screen_and_only_a_passed_screen_s_test(scr
     calls.clear()
     module["main"](argv)
     assert calls == []
-    assert [run["stages"]["test"] for run in json.loads((tmp_path / "scorer_benchmark_runs.json").read_text())[
-        "runs"]] == ["done before", "screen failed"]  # fmt: skip
+    summary = json.loads((tmp_path / "scorer_benchmark_runs.json").read_text())
+    assert [run["stages"]["test"] for run in summary["runs"]] == ["done before", "screen failed"]

@@ -90,8 +90,10 @@ def _branched_complete(folder: Path) -> bool:
 
 
 def _screen_failed(screen: Path) -> str | bool:
-    """Whether the test stage is not needed: its run's screen ran and failed the preregistered rule."""
-    return screen.exists() and not screen_passed(json.loads(screen.read_text())["paired"]) and "screen failed"
+    """``"screen failed"`` where the run's screen ran and failed the preregistered rule (its test is never run)."""
+    if screen.exists() and not screen_passed(json.loads(screen.read_text())["paired"]):
+        return "screen failed"
+    return False
 
 
 def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Callable[[], bool | str], list[str]]]:
