@@ -1,5 +1,6 @@
 """Branched outcomes (data from the same state) and the scorer that ranks within a state."""
 
+import json
 import math
 import runpy
 from pathlib import Path
@@ -327,7 +328,7 @@ def test_script_measures_imagined_inputs_the_paper_scorers_and_the_no_simulator_
     assert all(c["split_decisions"] == result["split_decisions"] for c in critics.values())
 
 
-def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(trained_policy, tmp_path):
+def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(trained_policy, tmp_path, monkeypatch):
     from torchrl_dalir.branching.outcome_noise import oracle_pick, redraw_outcomes, repeatability
     from torchrl_dalir.checkpoints import load_policy
 
@@ -348,17 +349,31 @@ def test_redrawn_outcomes_reproduce_the_stored_ones_under_their_own_noise(traine
     assert torch.equal(again["success"], outcomes.rows["success"])  # the collection's own noise: the same outcomes
     assert torch.equal(again["decision"], outcomes.rows["decision"]) and len(again) >= 2  # decisions 0 and 12, ...
     # the script: the stored draw, draw 0 again (a check, not a draw) and draw 1 -> an honest ceiling over 2 draws
-    result = script_main("outcome_noise")(
-        [
-            f"policy={checkpoint}",
-            f"branched={tmp_path / 'branched'}",
-            "draws=[0,1]",
-            "only_split=false",
-            "progress=false",
-        ]
-    )
+    argv = [
+        f"policy={checkpoint}",
+        f"branched={tmp_path / 'branched'}",
+        "draws=[0,1]",
+        "only_split=false",
+        "progress=false",
+    ]
+    result = script_main("outcome_noise")(argv)
     assert result["honest_ceiling"]["draws"] == 2 and result["honest_ceiling"]["decisions"] == len(again)
     assert [row["second"][0] for row in result["decisions"]] == again["success"].int().tolist()  # draw 0, stored
+    # a killed run resumes: draw 1 had finished its first decision only, draw 0 all of them
+    from torchrl_dalir.branching import outcome_noise
+
+    draw1 = tmp_path / "branched" / "redraws" / "draw1.json"
+    stored = json.loads(draw1.read_text())
+    assert len(stored["success"]) == len(again) and stored["plan"]["draw"] == 1
+    draw1.write_text(json.dumps({**stored, "success": stored["success"][:1]}))
+    branches = []
+    real_branch = outcome_noise.branch
+    monkeypatch.setattr(outcome_noise, "branch", lambda *a: branches.append(a) or real_branch(*a))
+    assert script_main("outcome_noise")(argv)["decisions"] == result["decisions"]  # the same
+    assert len(branches) == 2 * (len(again) - 1)  # the unfinished decisions of draw 1, 2 candidates each
+    draw1.write_text(json.dumps({**stored, "plan": {**stored["plan"], "draw": 2}}))
+    with pytest.raises(ValueError, match="another plan"):
+        script_main("outcome_noise")(argv)
     # the teacher's input: the simulator state replayed to each decision, checked against the stored observation
     from torchrl_dalir.branching.outcome_noise import privileged_states
     from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator

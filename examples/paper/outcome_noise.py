@@ -8,13 +8,15 @@ saved state under another draw of the base policy's noise (:mod:`torchrl_dalir.b
     python examples/paper/outcome_noise.py policy=<run>/checkpoint.pt branched=<folder> draws=[1,2,3] \\
         only_split=false json=docs/results/honest_ceiling_<run>.json
 
-Prints how often a first-draw winner wins again against a first-draw loser, the within-decision AUC of the
-first draw's outcome as a score of the second's (what a perfect scorer of the chunk could reach at most if the
-outcome were all chunk), and the second draw's success rate of the clean candidate, a random one, the first
-draw's oracle pick and the second draw's own oracle. ``draw=0`` re-runs the collection's own draw (a check:
-the stored outcomes come back). With several ``draws`` it also prints the honest ceiling
-(:func:`~torchrl_dalir.branching.outcome_noise.honest_ceiling`) over the stored draw and the new ones: the gain
-of a scorer that knows each chunk's true chance, cross-fitted over draws, beside the clairvoyant oracle.
+Prints how often a first-draw winner wins again against a first-draw loser, the within-decision AUC of the first
+draw's outcome as a score of the second's (what a perfect scorer of the chunk could reach at most if the outcome
+were all chunk), and the second draw's success rate of the clean candidate, a random one, the first draw's oracle
+pick and the second draw's own oracle. Each draw's finished decisions are kept beside the collection
+(``<branched>/redraws/``), so a killed run goes on where it stopped and gives the same outcomes. ``draw=0`` re-runs
+the collection's own draw (a check: the stored outcomes come back). With several ``draws`` it also prints the
+honest ceiling (:func:`~torchrl_dalir.branching.outcome_noise.honest_ceiling`) over the stored draw and the new
+ones: the gain of a scorer that knows each chunk's true chance, cross-fitted over draws, beside the clairvoyant
+oracle.
 """
 
 import json
@@ -39,6 +41,7 @@ class Config:
     draws: list[int] = field(default_factory=lambda: [1])  # the noise draws after each decision (0: the stored one)
     only_split: bool = True  # only the decisions whose stored candidates split (False: every decision)
     json: str | None = None
+    resume: bool = True  # each draw's finished decisions go to <branched>/redraws/; a killed run goes on from there
     progress: bool = True
 
     def __post_init__(self):
@@ -48,12 +51,22 @@ class Config:
             check_at_least("draws", draw, 0)
 
 
+def resume_file(cfg: Config, draw: int) -> Path | None:
+    """Where draw ``draw``'s finished decisions are kept, beside the collection (None without ``resume``)."""
+    return (
+        Path(cfg.branched) / "redraws" / f"draw{draw}{'_split' if cfg.only_split else ''}.json" if cfg.resume else None
+    )
+
+
 def main(argv: list[str]) -> dict:
     cfg = parse_config(Config, argv)
     policy = load_policy(cfg.policy)
     outcomes = BranchedOutcomes.load(cfg.branched, policy=policy)
     start = time.perf_counter()
-    redrawn = [redraw_outcomes(policy, outcomes, d, cfg.only_split, cfg.progress) for d in cfg.draws]
+    redrawn = [
+        redraw_outcomes(policy, outcomes, d, cfg.only_split, cfg.progress, resume=resume_file(cfg, d))
+        for d in cfg.draws
+    ]
     stored = redrawn[0]["first_success"]
     measured = repeatability(stored, redrawn[0][SUCCESS])
     print(f"{outcomes}: {json.dumps(measured)}")

@@ -11,7 +11,9 @@ learn; if not, the first draw's winners were luck, and no scorer can reach that 
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
+from pathlib import Path
 
 import torch
 from tensordict import TensorDict
@@ -26,9 +28,11 @@ from torchrl_dalir.branching.simulator import (
     executed_actions,
     observation_history,
 )
+from torchrl_dalir.data.storage import _read_json
 from torchrl_dalir.envs.gym_env import PointCloudObservation, make_simulator
 from torchrl_dalir.envs.tasks import get_task
 from torchrl_dalir.objectives.within_state_ranking import split_decisions
+from torchrl_dalir.utils import atomic_write, weights_digest
 
 # Draw d > 0 of the base policy's noise after a decision uses the noise stream of episode seed
 # reset_seed + d * NOISE_DRAW_STRIDE (draw 0 is the collection's own), far from any real reset seed.
@@ -88,27 +92,62 @@ def privileged_states(
 
 @torch.no_grad()
 def redraw_outcomes(
-    policy, outcomes: BranchedOutcomes, draw: int = 1, only_split: bool = True, progress: bool = True, device="cpu"
+    policy,
+    outcomes: BranchedOutcomes,
+    draw: int = 1,
+    only_split: bool = True,
+    progress: bool = True,
+    device="cpu",
+    resume: str | Path | None = None,
 ) -> TensorDict:
     """Every stored candidate of ``outcomes``' decisions (those that split, with ``only_split``) executed again
     from its saved state and continued with the base policy under noise draw ``draw`` (0: the collection's
     own, which reproduces the stored outcomes). Returns the decisions' rows with ``success`` ``[D, K]`` of the
-    new draw and ``first_success``, the stored one."""
+    new draw and ``first_success``, the stored one.
+
+    With ``resume`` (a JSON file), each finished decision's outcomes are written to it as they come (atomically),
+    and a call that finds it continues at the first unfinished decision: a killed redraw of an hour loses one
+    decision, and gives the same outcomes. The file names its plan (the policy's weights, the collection, the
+    draw, ``only_split``); one of another plan is refused."""
     rows = outcomes.rows.to_tensordict()
     if only_split:
         rows = rows[split_decisions(rows[SUCCESS])]
-    successes = []
+    plan = {
+        "policy_digest": weights_digest(policy),
+        "collection": outcomes.meta.plan(),
+        "draw": draw,
+        "only_split": only_split,
+        "decisions": len(rows),
+    }
+    successes = _resumed(Path(resume), plan) if resume is not None else []
     for row, env, state, observations in replayed_decisions(
-        policy, outcomes.meta.task, rows, "redraw", progress, device
+        policy, outcomes.meta.task, rows[len(successes) :], "redraw", progress, device
     ):
         reset_seed, decision = int(row[RESET_SEED]), int(row[DECISION])
         actions = executed_actions(policy, row[keys.ACTION_CHUNK])
         seed = noise_seed(reset_seed, draw)
-        successes.append([branch(env, policy, state, observations, a, seed, decision, device)[0] for a in actions])
+        successes.append(
+            [bool(branch(env, policy, state, observations, a, seed, decision, device)[0]) for a in actions]
+        )
+        if resume is not None:
+            atomic_write(resume, json.dumps({"plan": plan, "success": successes}))
     out = rows.select(RESET_SEED, DECISION).clone()
     out.set("first_success", rows[SUCCESS])
     out.set(SUCCESS, torch.tensor(successes, dtype=torch.bool).reshape(rows[SUCCESS].shape))
     return out
+
+
+def _resumed(path: Path, plan: dict) -> list[list[bool]]:
+    """The finished decisions' outcomes in a redraw's ``resume`` file (none if there is no file yet)."""
+    if not path.exists():
+        return []
+    stored = _read_json(path)
+    if stored.get("plan") != plan:
+        raise ValueError(
+            f"{path} holds the redraw of another plan ({stored.get('plan')}), not {plan}: "
+            "choose another file or delete it"
+        )
+    return [[bool(s) for s in row] for row in stored["success"]]
 
 
 def oracle_pick(success: torch.Tensor) -> torch.Tensor:
