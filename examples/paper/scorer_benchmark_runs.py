@@ -20,8 +20,8 @@ and with ``evaluate=true`` the preregistered protocol on it (``docs/results/stud
 8. only if the screen passed (:func:`~torchrl_dalir.evaluation.compare.screen_passed`), the test episodes,
    ``student_test_<run>.json`` (``seed=0 test=true``). Then ``python examples/paper/student_summary.py``.
 
-A stage whose artifact is whole is skipped, so a stopped command resumes where it was (branching resumes
-within its episodes, too). The files go to ``<results>/docs/results/`` and ``<results>/benchmarks/scorer/``
+A stage whose artifact is whole is skipped, so a stopped command resumes where it was (branching and the redraws resume
+within their decisions, too). The files go to ``<results>/docs/results/`` and ``<results>/benchmarks/scorer/``
 (default ``results=out``; ``results=.`` adds them to this checkout, where a run whose files are committed counts
 as done, whatever policy ``out`` holds). Each run's output goes to ``<out>/logs/<run>.log``; exit codes and wall
 times per stage to ``<out>/scorer_benchmark_runs.json``. Then ``python examples/paper/scorer_benchmark.py`` measures
