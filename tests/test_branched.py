@@ -421,3 +421,18 @@ def test_honest_ceiling_picks_by_the_other_draws_and_cannot_pick_the_lucky_conti
     assert ceiling["true_chance_auc"] == 0.5
     with pytest.raises(ValueError, match="at least 2 draws"):
         honest_ceiling(success[..., :1])
+
+
+def test_the_honest_ceiling_by_decision_is_the_ceiling_of_each_decision_index_apart():
+    from torchrl_dalir.branching.outcome_noise import honest_ceiling, honest_ceiling_by_decision
+
+    success = torch.rand(6, 4, 3, generator=torch.Generator().manual_seed(0)) > 0.5
+    decision = torch.tensor([0, 1, 0, 2, 1, 0])
+    by_decision = honest_ceiling_by_decision(success, decision)
+    assert sorted(by_decision) == [0, 1, 2] and by_decision[0]["decisions"] == 3
+    assert by_decision[1] == honest_ceiling(success[[1, 4]])
+    # decision 0's rows weigh 3 of 6 in the pooled ceiling: the pooled gain is the rows' weighted mean
+    pooled = sum(c["honest_gain"] * c["decisions"] for c in by_decision.values()) / len(success)
+    assert honest_ceiling(success)["honest_gain"] == pytest.approx(pooled)
+    with pytest.raises(ValueError, match="each of the 6 rows"):
+        honest_ceiling_by_decision(success, decision[:5])

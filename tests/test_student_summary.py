@@ -45,7 +45,13 @@ def test_the_summary_holds_the_committed_numbers_and_pools_them(tmp_path):
     assert cells[("dp", "pen")]["mean_gain"] == 0.0 and cells[("fm", "stick-pull")]["mean_gain"] == pytest.approx(
         (0.18 + 0.18 + 0.02) / 3
     )
-    assert "| FM | stick-pull | 0, 1, 2 | +12.7 |" in (tmp_path / "summary.md").read_text()
+    assert "| FM | stick-pull | 0, 1, 2 | +12.7 | +12.7 | +8.2 | +7.9 |" in (tmp_path / "summary.md").read_text()
+    # beside the test gain, the same means of the honest ceiling and of the student's offline gain
+    stick_pulls = [rows[f"fm_stick_pull_s{seed}"] for seed in range(3)]
+    assert cells[("fm", "stick-pull")]["mean_ceiling"] == pytest.approx(sum(r["honest_gain"] for r in stick_pulls) / 3)
+    assert cells[("fm", "stick-pull")]["mean_offline"] == pytest.approx(sum(r["student_gain"] for r in stick_pulls) / 3)
+    fm_ceilings = [cell["mean_ceiling"] for (backbone, _), cell in cells.items() if backbone == "fm"]
+    assert summary["pooled"]["fm"]["table1_ceiling"] == pytest.approx(sum(fm_ceilings) / len(fm_ceilings))
     assert json.loads((tmp_path / "summary.json").read_text())["pooled"] == summary["pooled"]
     assert (tmp_path / "summary.png").stat().st_size > 0
 

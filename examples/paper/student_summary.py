@@ -112,7 +112,8 @@ def test_gain(row: dict, gated: bool = False) -> float | None:
 
 def per_task(rows: list[dict]) -> list[dict]:
     """Table 1's cells: per backbone and task, the seeds with a Table 1 gain and its mean over them, ungated and
-    gated."""
+    gated, beside the mean over the same seeds of the honest ceiling and of the student's offline gain (what the
+    first decision's candidates allow, and what the student takes of it)."""
     cells = {}
     for row in rows:
         if test_gain(row) is not None:
@@ -124,6 +125,8 @@ def per_task(rows: list[dict]) -> list[dict]:
             "seeds": sorted(row["seed"] for row in runs),
             "mean_gain": sum(test_gain(row) for row in runs) / len(runs),
             "mean_gain_gated": sum(test_gain(row, gated=True) for row in runs) / len(runs),
+            "mean_ceiling": sum(row["honest_gain"] for row in runs) / len(runs),
+            "mean_offline": sum(row["student_gain"] for row in runs) / len(runs),
         }
         for (backbone, task), runs in sorted(cells.items())
     ]
@@ -133,7 +136,8 @@ def pooled(rows: list[dict]) -> dict:
     """Per backbone with a Table 1 cell: over the runs with a test, the mean gain (points), wins, losses and the
     sign test; Table 1's mean over the backbone's tasks of each task's mean over its seeds (:func:`per_task`, a
     failed screen counts 0), ungated as ``table1_gain`` and gated as ``table1_gain_gated``, over ``table1_tasks``
-    tasks of ``table1_runs`` runs; ``deployed``: the sign test over the tested runs the gate deploys."""
+    tasks of ``table1_runs`` runs, and the same mean of the honest ceiling (``table1_ceiling``) and of the
+    student's offline gain (``table1_offline``); ``deployed``: the sign test over the tested runs the gate deploys."""
     table = {}
     for backbone in sorted({row["backbone"] for row in rows}):
         runs = [row for row in rows if row["backbone"] == backbone]
@@ -149,6 +153,8 @@ def pooled(rows: list[dict]) -> dict:
                 "table1_runs": sum(len(cell["seeds"]) for cell in cells),
                 "table1_gain": sum(cell["mean_gain"] for cell in cells) / len(cells),
                 "table1_gain_gated": sum(cell["mean_gain_gated"] for cell in cells) / len(cells),
+                "table1_ceiling": sum(cell["mean_ceiling"] for cell in cells) / len(cells),
+                "table1_offline": sum(cell["mean_offline"] for cell in cells) / len(cells),
                 "deployed": {
                     "runs": len(deployed),
                     **sign_test(sum(t["lost"] for t in deployed), sum(t["won"] for t in deployed)),
@@ -173,7 +179,9 @@ def pool_lines(pools: dict, scope: str) -> list[str]:
             f"Table 1's mean over {pool['table1_tasks']} tasks ({pool['table1_runs']} screened runs; a failed screen "
             f"counts 0): {100 * pool['table1_gain']:+.1f} points, gated {100 * pool['table1_gain_gated']:+.1f} "
             f"(tested runs the gate deploys: {deployed['runs']}, {deployed['dalir_only']} won / "
-            f"{deployed['base_only']} lost, p = {deployed['p_value']:.2g})."
+            f"{deployed['base_only']} lost, p = {deployed['p_value']:.2g}); the same mean of the honest ceiling: "
+            f"{100 * pool['table1_ceiling']:+.1f} points, of the student's offline gain: "
+            f"{100 * pool['table1_offline']:+.1f}."
         )
     return lines
 
@@ -206,14 +214,15 @@ def markdown(rows: list[dict], pools: dict, judged: dict, cells: list[dict], gat
         lines.append("\nThe gate is judged on no run yet: every run so far is one it was chosen on (seen).")
     lines += [
         "",
-        "| backbone | task | seeds | mean test gain (failed screen = 0) | gated |",
-        "| --- | --- | --- | --- | --- |",
+        "| backbone | task | seeds | mean test gain (failed screen = 0) | gated | honest ceiling | student offline |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for cell in cells:
         seeds = ", ".join(str(seed) for seed in cell["seeds"])
         lines.append(
             f"| {cell['backbone'].upper()} | {cell['task']} | {seeds} | {100 * cell['mean_gain']:+.1f} "
-            f"| {100 * cell['mean_gain_gated']:+.1f} |"
+            f"| {100 * cell['mean_gain_gated']:+.1f} | {100 * cell['mean_ceiling']:+.1f} "
+            f"| {100 * cell['mean_offline']:+.1f} |"
         )
     return "\n".join(lines) + "\n"
 

@@ -231,10 +231,28 @@ def honest_ceiling(success: torch.Tensor) -> dict:
     }
 
 
+def honest_ceiling_by_decision(success: torch.Tensor, decision: torch.Tensor) -> dict[int, dict]:
+    """:func:`honest_ceiling` apart at each decision index of the episodes: where in an episode the candidates
+    have headroom. ``decision`` ``[D]`` is each row's decision index (its ``decision`` entry); each index's
+    gain is that of reranking it alone, the base policy acting at the others.
+
+    Example:
+        >>> success = torch.tensor([[[0, 0], [1, 1]], [[1, 1], [1, 1]]])  # decision 0 of one episode, 1 of it
+        >>> {d: c["honest_gain"] for d, c in honest_ceiling_by_decision(success, torch.tensor([0, 1])).items()}
+        {0: 1.0, 1: 0.0}
+    """
+    if decision.shape != success.shape[:1]:
+        raise ValueError(
+            f"decision must give each of the {len(success)} rows its index, got shape {tuple(decision.shape)}"
+        )
+    return {int(d): honest_ceiling(success[decision == d]) for d in decision.unique().tolist()}
+
+
 __all__ = [
     "NOISE_DRAW_STRIDE",
     "decision_state",
     "honest_ceiling",
+    "honest_ceiling_by_decision",
     "noise_seed",
     "oracle_pick",
     "privileged_states",
