@@ -436,3 +436,13 @@ def test_the_honest_ceiling_by_decision_is_the_ceiling_of_each_decision_index_ap
     assert honest_ceiling(success)["honest_gain"] == pytest.approx(pooled)
     with pytest.raises(ValueError, match="each of the 6 rows"):
         honest_ceiling_by_decision(success, decision[:5])
+
+
+def test_the_honest_ceiling_by_candidates_uses_the_first_k_of_them():
+    from torchrl_dalir.branching.outcome_noise import honest_ceiling, honest_ceiling_by_candidates
+
+    success = torch.rand(5, 12, 3, generator=torch.Generator().manual_seed(0)) > 0.5
+    by_candidates = honest_ceiling_by_candidates(success)
+    assert list(by_candidates) == [2, 4, 8, 12]
+    assert by_candidates[4] == honest_ceiling(success[:, :4]) and by_candidates[12] == honest_ceiling(success)
+    assert list(honest_ceiling_by_candidates(success[:, :8])) == [2, 4, 8]

@@ -123,6 +123,23 @@ def test_later_decisions_are_branched_and_distilled_into_files_of_their_own(scri
         assert parse_config(script_config, commands[stage][2:]).decisions == 4
 
 
+def test_another_number_of_candidates_is_branched_into_files_of_its_own(script, tmp_path):
+    """K = 32 from the same first decisions is its own collection and files: the K = 8 run's complete branched
+    folder and files, already there, do not count as its stages done."""
+    module, calls = script
+    module["main"]([f"out={tmp_path}", "tasks=[door]"])
+    calls.clear()
+    module["main"]([f"out={tmp_path}", "tasks=[door]", "num_candidates=32"])
+    assert calls == STAGES[1:]  # the policy is shared
+    assert (tmp_path / "branched_k32" / "door" / "fm_seed0" / "dropout" / "meta.json").exists()
+    assert (tmp_path / "docs" / "results" / "honest_ceiling_fm_door_s0_k32.json").exists()
+    assert (tmp_path / "benchmarks" / "scorer" / "distill" / "fm_door_s0_k32.pt").exists()
+    commands = dict((name, command) for name, _, command in module["stages"](
+        module["Config"](out=str(tmp_path), num_candidates=32, decisions=4), "door", 0))  # fmt: skip
+    assert f"out={tmp_path / 'branched_d4_k32'}" in commands["branching"]
+    assert "num_candidates=32" in commands["branching"] and "num_candidates=32" in commands["distillation"]
+
+
 def test_evaluate_runs_the_ladder_the_screen_and_only_a_passed_screen_s_test(script, tmp_path):
     """With evaluate=true the preregistered protocol follows the files: a screen that wins as many episodes as it
     loses fails the rule, and its run's test episodes are never run, then or on resuming."""

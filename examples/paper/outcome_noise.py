@@ -16,7 +16,8 @@ pick and the second draw's own oracle. Each draw's finished decisions are kept b
 the collection's own draw (a check: the stored outcomes come back). With several ``draws`` it also prints the
 honest ceiling (:func:`~torchrl_dalir.branching.outcome_noise.honest_ceiling`) over the stored draw and the new
 ones: the gain of a scorer that knows each chunk's true chance, cross-fitted over draws, beside the clairvoyant
-oracle; where later decisions were branched too, also at each decision index apart.
+oracle; where later decisions were branched too, also at each decision index apart, and with the first 2, 4, ...
+candidates only (how the headroom grows with K).
 """
 
 import json
@@ -29,6 +30,7 @@ import torch
 
 from torchrl_dalir.branching.outcome_noise import (
     honest_ceiling,
+    honest_ceiling_by_candidates,
     honest_ceiling_by_decision,
     redraw_outcomes,
     repeatability,
@@ -78,13 +80,19 @@ def main(argv: list[str]) -> dict:
     # the stored draw and each new one (draw 0 re-runs the stored draw: a check, not another draw)
     success = torch.stack([stored] + [r[SUCCESS] for d, r in zip(cfg.draws, redrawn) if d != 0], -1)
     ceiling = honest_ceiling(success) if success.shape[-1] > 1 else None
-    by_decision = None
+    by_decision = by_candidates = None
     if ceiling is not None:
         print(f"honest ceiling over {ceiling['draws']} draws: {json.dumps(ceiling)}")
         if redrawn[0][DECISION].unique().numel() > 1:  # later decisions branched too: where is the headroom?
             by_decision = honest_ceiling_by_decision(success, redrawn[0][DECISION])
             for d, at in by_decision.items():
                 print(f"  decision {d} ({at['decisions']} rows): honest gain {100 * at['honest_gain']:+.1f} points")
+        if success.shape[1] > 2:  # fewer candidates from the same states: how the headroom grows with K
+            by_candidates = honest_ceiling_by_candidates(success)
+            for k, at in by_candidates.items():
+                print(
+                    f"  K = {k}: honest gain {100 * at['honest_gain']:+.1f}, clairvoyant {100 * at['oracle_gain']:+.1f}"
+                )
     payload = {
         **provenance("examples/paper/outcome_noise.py", argv, cfg),
         "task": policy.task,
@@ -93,6 +101,7 @@ def main(argv: list[str]) -> dict:
         "repeatability": measured,
         "honest_ceiling": ceiling,
         "honest_ceiling_by_decision": by_decision,
+        "honest_ceiling_by_candidates": by_candidates,
         "draws": cfg.draws,
         "decisions": [
             {"reset_seed": int(s), "decision": int(d), "first": f.int().tolist(), "second": n.int().T.tolist()}

@@ -55,7 +55,7 @@ class Config:
     policy: str = "fm"  # fm | dp
     episodes: int = 100  # branched episodes (data seeds 500000, ...)
     decisions: int = 1  # each episode's first decisions, branched and distilled (> 1: runs named <run>_d<decisions>)
-    num_candidates: int = 8
+    num_candidates: int = 8  # K (another K: runs named <run>_k<K>)
     draws: list[int] = field(default_factory=lambda: [1, 2, 3])  # further noise draws (M = 1 + len(draws))
     states: int = 1000  # distillation states (data seeds 600000, ...)
     out: str = "outputs/scorer_benchmark"  # policies, branched folders and logs
@@ -80,8 +80,16 @@ class Config:
             )
 
 
+def variant(cfg: Config) -> str:
+    """What sets a run's decisions apart from the default's: ``_d<decisions>`` where later decisions are branched,
+    ``_k<K>`` where the candidates are not the default's (``""`` for the first decision with 8 candidates)."""
+    return (f"_d{cfg.decisions}" if cfg.decisions > 1 else "") + (
+        f"_k{cfg.num_candidates}" if cfg.num_candidates != Config.num_candidates else ""
+    )
+
+
 def run_name(cfg: Config, task: str, seed: int) -> str:
-    return f"{cfg.policy}_{task.replace('-', '_')}_s{seed}" + (f"_d{cfg.decisions}" if cfg.decisions > 1 else "")
+    return f"{cfg.policy}_{task.replace('-', '_')}_s{seed}{variant(cfg)}"
 
 
 def _branched_complete(folder: Path) -> bool:
@@ -103,7 +111,7 @@ def stages(cfg: Config, task: str, seed: int) -> list[tuple[str, Callable[[], bo
     out, run = Path(cfg.out), run_name(cfg, task, seed)
     results = Path(cfg.results or out)
     policy = out / "policies" / task / f"{cfg.policy}_seed{seed}" / "checkpoint.pt"
-    branched_out = out / ("branched" if cfg.decisions == 1 else f"branched_d{cfg.decisions}")
+    branched_out = out / f"branched{variant(cfg)}"  # another K or decisions: another collection
     branched = branched_out / task / policy.parent.name / "dropout"
     redraws = results / "docs" / "results" / f"honest_ceiling_{run}.json"
     benchmark = results / "benchmarks" / "scorer" / f"{run}.pt"

@@ -248,10 +248,25 @@ def honest_ceiling_by_decision(success: torch.Tensor, decision: torch.Tensor) ->
     return {int(d): honest_ceiling(success[decision == d]) for d in decision.unique().tolist()}
 
 
+def honest_ceiling_by_candidates(success: torch.Tensor) -> dict[int, dict]:
+    """:func:`honest_ceiling` with the first ``k`` candidates only, for ``k = 2, 4, 8, ...`` below ``K`` and ``K``
+    itself: how the headroom grows with the candidates drawn from the same states (candidate 0 is the clean one,
+    the others are independent draws, so the first ``k`` are a draw of ``k`` candidates).
+
+    Example:
+        >>> success = torch.tensor([[[0, 0], [0, 0], [1, 1], [0, 0]]])  # only candidate 2 wins
+        >>> {k: c["honest_gain"] for k, c in honest_ceiling_by_candidates(success).items()}
+        {2: 0.0, 4: 1.0}
+    """
+    counts = [2**i for i in range(1, success.shape[1].bit_length()) if 2**i < success.shape[1]] + [success.shape[1]]
+    return {k: honest_ceiling(success[:, :k]) for k in counts}
+
+
 __all__ = [
     "NOISE_DRAW_STRIDE",
     "decision_state",
     "honest_ceiling",
+    "honest_ceiling_by_candidates",
     "honest_ceiling_by_decision",
     "noise_seed",
     "oracle_pick",
