@@ -16,8 +16,8 @@ pick and the second draw's own oracle. Each draw's finished decisions are kept b
 the collection's own draw (a check: the stored outcomes come back). With several ``draws`` it also prints the
 honest ceiling (:func:`~torchrl_dalir.branching.outcome_noise.honest_ceiling`) over the stored draw and the new
 ones: the gain of a scorer that knows each chunk's true chance, cross-fitted over draws, beside the clairvoyant
-oracle; where later decisions were branched too, also at each decision index apart, and with the first 2, 4, ...
-candidates only (how the headroom grows with K).
+oracle, with the first 2, 4, ... candidates only (how the headroom grows with K) and, where later decisions were
+branched too, at each decision index apart.
 """
 
 import json
